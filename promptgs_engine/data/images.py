@@ -1,0 +1,131 @@
+"""Reading images from disk: header sizes, area downscaling, and a byte-bounded LRU cache.
+
+Pixel convention (the one COLMAP and gsplat use): pixel (i, j) covers the square
+[j, j+1) x [i, i+1) in image coordinates, so its centre is at (j + 0.5, i + 0.5).
+Downscaling by an integer factor f averages f x f blocks (box filter); the block
+starting at (f*j, f*i) becomes pixel (j, i), so a point at x in the full image is at
+x / f in the small one, and intrinsics scale by exactly 1/f. When the size is not a
+multiple of f, the last partial row/column of blocks is cropped (right and bottom
+edges), which keeps the 1/f scaling exact.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image, UnidentifiedImageError
+
+from ..errors import DatasetError
+
+DEFAULT_CACHE_BYTES = 2 * 1024**3
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file, read from its header without decoding pixels."""
+    try:
+        with Image.open(path) as im:
+            return int(im.width), int(im.height)
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: image file not found") from None
+    except (UnidentifiedImageError, OSError) as e:
+        raise DatasetError(f"{path}: unreadable image file ({e})") from None
+
+
+def read_image_uint8(path: Path, downscale: int = 1) -> np.ndarray:
+    """Decode an image as RGB uint8 [H, W, 3], box-downscaled by an integer factor.
+
+    The result has size (W // downscale, H // downscale); see the module docstring for
+    the cropping convention.
+    """
+    if downscale < 1:
+        raise ValueError(f"downscale must be >= 1, got {downscale}")
+    try:
+        with Image.open(path) as im:
+            im = im.convert("RGB")
+            if downscale > 1:
+                w, h = im.width // downscale, im.height // downscale
+                if w == 0 or h == 0:
+                    raise DatasetError(f"{path}: image of {im.width}x{im.height} is too small to downscale by {downscale}")
+                im = im.reduce(downscale, box=(0, 0, w * downscale, h * downscale))
+            return np.asarray(im, dtype=np.uint8).copy()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: image file not found") from None
+    except (UnidentifiedImageError, OSError) as e:
+        raise DatasetError(f"{path}: unreadable image file ({e})") from None
+
+
+class ImageCache:
+    """Least-recently-used cache of decoded images (uint8), bounded in bytes.
+
+    Keys are (path, downscale). Thread-safe. Holding uint8 rather than float32 keeps
+    four times as many images for the same memory.
+    """
+
+    def __init__(self, max_bytes: int = DEFAULT_CACHE_BYTES) -> None:
+        self.max_bytes = int(max_bytes)
+        self._items: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes currently held."""
+        return self._bytes
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._items.clear()
+            self._bytes = 0
+
+    def set_max_bytes(self, max_bytes: int) -> None:
+        with self._lock:
+            self.max_bytes = int(max_bytes)
+            self._evict()
+
+    def get(self, path: Path, downscale: int) -> np.ndarray:
+        """The decoded image, from the cache or from disk (then cached if it fits)."""
+        key = (str(path), int(downscale))
+        with self._lock:
+            arr = self._items.get(key)
+            if arr is not None:
+                self._items.move_to_end(key)
+                return arr
+        arr = read_image_uint8(path, downscale)
+        arr.setflags(write=False)
+        with self._lock:
+            if key not in self._items and arr.nbytes <= self.max_bytes:
+                self._items[key] = arr
+                self._bytes += arr.nbytes
+                self._evict()
+        return arr
+
+    def _evict(self) -> None:
+        while self._bytes > self.max_bytes and self._items:
+            _, old = self._items.popitem(last=False)
+            self._bytes -= old.nbytes
+
+
+IMAGE_CACHE = ImageCache()
+
+
+def set_image_cache_bytes(max_bytes: int) -> None:
+    """Bound the process-wide decoded-image cache (default 2 GiB; 0 disables caching)."""
+    IMAGE_CACHE.set_max_bytes(max_bytes)
+
+
+def load_image_tensor(path: Path, downscale: int, expected_size: tuple[int, int]) -> torch.Tensor:
+    """[H, W, 3] float32 in [0, 1]; checks the decoded size is `expected_size` (W, H)."""
+    arr = IMAGE_CACHE.get(path, downscale)
+    h, w = arr.shape[:2]
+    if (w, h) != tuple(expected_size):
+        raise DatasetError(
+            f"{path}: image is {w}x{h} at downscale {downscale}, expected {expected_size[0]}x{expected_size[1]}"
+        )
+    return torch.from_numpy(arr.astype(np.float32)).div_(255.0)
