@@ -1,0 +1,146 @@
+"""The ``promptgs`` command line: train, eval, render (and dataset, bench when present).
+
+Bad input ends with a one-line ``promptgs: error: …`` on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from . import __version__
+from .errors import PromptGSError
+
+
+def _add_train(sub) -> None:
+    p = sub.add_parser("train", help="train Gaussians on a COLMAP dataset")
+    p.add_argument("dataset", nargs="?", help="dataset folder (images/ and sparse/0/)")
+    p.add_argument("--out", help="run folder to write")
+    p.add_argument("--job", type=Path, help="JSON job file; its keys are these options (command-line options win)")
+    p.add_argument("--images", help="images folder name inside the dataset (default: images)")
+    p.add_argument("--iterations", type=int)
+    p.add_argument("--backend", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--strategy", choices=["3dgs", "absgs", "promptgs"])
+    p.add_argument("--seed", type=int)
+    p.add_argument("--resolution-scale", type=float, help="train at this fraction of the image size (0.25: a quarter)")
+    p.add_argument("--sh-degree", type=int)
+    p.add_argument("--budget", type=int, help="maximum number of Gaussians")
+    p.add_argument("--prompts", help="prompt file (JSON boxes in dataset coordinates)")
+    p.add_argument("--center-prompt", action="store_true", default=None, help="one unit box at the origin (the paper's Ours*)")
+    p.add_argument("--auto-prompts", type=int, help="add the error field's top N proposals as prompts")
+    p.add_argument("--snapshot-every", type=int, help="write a snapshot for the Blender add-on every N steps")
+    p.add_argument("--checkpoint-every", type=int)
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    p.add_argument("--overwrite", action="store_true", help="replace a run already in --out")
+    p.add_argument("--events", action="store_true", help="JSON-lines events on stdout (for the Blender add-on)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
+
+
+_TRAIN_KEYS = (
+    "dataset", "out", "images", "iterations", "backend", "strategy", "seed", "resolution_scale",
+    "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "snapshot_every", "checkpoint_every",
+)
+
+
+def train_config_from_args(args: argparse.Namespace):
+    from .config import TrainConfig
+
+    settings: dict = {}
+    if args.job is not None:
+        try:
+            settings = json.loads(args.job.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise PromptGSError(f"{args.job}: cannot read job file ({exc})") from exc
+        if not isinstance(settings, dict):
+            raise PromptGSError(f"{args.job}: a job file holds one JSON object")
+        for flag in ("resume", "overwrite"):
+            settings.pop(flag, None)
+    for key in _TRAIN_KEYS:
+        value = getattr(args, key)
+        if value is not None:
+            settings[key] = value
+    for key in ("dataset", "out"):
+        if not settings.get(key):
+            raise PromptGSError(f"train needs a {key} (argument or job file key {key!r})")
+    return TrainConfig.from_json(settings)
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from .events import EventWriter
+    from .train import run_training
+
+    cfg = train_config_from_args(args)
+    events = EventWriter.stdout() if args.events else None
+    metrics = run_training(cfg, resume=args.resume, overwrite=args.overwrite, events=events, quiet=args.quiet)
+    if not args.events:
+        _print_metrics(metrics)
+    return 0
+
+
+def _print_metrics(metrics: dict) -> None:
+    shown = {k: v for k, v in metrics.items() if k != "per_image"}
+    print(json.dumps(shown, indent=2))
+
+
+def _add_eval(sub) -> None:
+    p = sub.add_parser("eval", help="evaluate a run folder on its test views")
+    p.add_argument("run", type=Path)
+    p.add_argument("--masks", type=Path, help="object masks (white = object), same names as the images")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_eval)
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluation import evaluate_run
+
+    _print_metrics(evaluate_run(args.run, mask_dir=args.masks, quiet=args.quiet))
+    return 0
+
+
+def _add_render(sub) -> None:
+    p = sub.add_parser("render", help="render views of a run to PNG")
+    p.add_argument("run", type=Path)
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--camera", action="append", help="image name of a camera (repeatable)")
+    which.add_argument("--all", action="store_true", help="every camera of the dataset")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_render)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from .evaluation import render_run
+
+    paths = render_run(args.run, args.out, None if args.all else args.camera, quiet=args.quiet)
+    print(f"wrote {len(paths)} images to {args.out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="promptgs", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"promptgs {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_train(sub)
+    _add_eval(sub)
+    _add_render(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except PromptGSError as exc:
+        print(f"promptgs: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("promptgs: interrupted; the last checkpoint is kept", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

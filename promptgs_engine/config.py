@@ -1,0 +1,85 @@
+"""Training settings: one dataclass, written to ``cfg.json`` in every run folder."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import PromptGSError
+
+
+@dataclass
+class TrainConfig:
+    dataset: str
+    out: str
+    images: str = "images"
+    iterations: int = 7000
+    backend: str = "auto"  # auto | cpu | cuda
+    seed: int = 0
+    resolution_scale: float = 1.0  # images are downscaled by the whole factor round(1 / scale)
+    strategy: str = "3dgs"  # 3dgs | absgs | promptgs
+    sh_degree: int = 3
+    ssim_lambda: float = 0.2
+    test_every: int = 8
+    init_opacity: float = 0.1
+    # Learning rates of the 3DGS paper; `means_lr` is multiplied by the scene extent and
+    # decays exponentially to 1% of its start over the run.
+    means_lr: float = 1.6e-4
+    scales_lr: float = 5e-3
+    quats_lr: float = 1e-3
+    opacities_lr: float = 5e-2
+    sh0_lr: float = 2.5e-3
+    shN_lr: float = 2.5e-3 / 20
+    budget: int | None = None  # maximum number of Gaussians (None: no limit)
+    snapshot_every: int = 0  # write a snapshot .npz every N steps (0: only at the end when events are on)
+    checkpoint_every: int = 1000
+    progress_every: int = 10
+    # PromptGS options (see docs/promptgs.md); unused by the baselines.
+    prompts: Any = None  # path of a prompt file, or the prompt object itself
+    center_prompt: bool = False
+    auto_prompts: int = 0
+    progressive: bool | None = None  # None: on for promptgs, off for the baselines
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def downscale(self) -> int:
+        if not 0 < self.resolution_scale <= 1:
+            raise PromptGSError(f"--resolution-scale must be in (0, 1], got {self.resolution_scale}")
+        return max(1, round(1.0 / self.resolution_scale))
+
+    def validate(self) -> None:
+        if self.iterations < 1:
+            raise PromptGSError(f"--iterations must be at least 1, got {self.iterations}")
+        if self.backend not in ("auto", "cpu", "cuda"):
+            raise PromptGSError(f"unknown backend {self.backend!r} (use auto, cpu or cuda)")
+        from .strategies import STRATEGY_NAMES
+
+        if self.strategy not in STRATEGY_NAMES:
+            raise PromptGSError(f"unknown strategy {self.strategy!r} (use {', '.join(STRATEGY_NAMES)})")
+        if not 0 <= self.sh_degree <= 3:
+            raise PromptGSError(f"--sh-degree must be 0..3, got {self.sh_degree}")
+        if self.budget is not None and self.budget < 1:
+            raise PromptGSError(f"--budget must be positive, got {self.budget}")
+        self.downscale  # validates resolution_scale
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict) -> "TrainConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise PromptGSError(f"unknown training settings: {', '.join(unknown)}")
+        return cls(**data)
+
+    @classmethod
+    def load(cls, path: Path) -> "TrainConfig":
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise PromptGSError(f"{path}: cannot read training settings ({exc})") from exc
+        return cls.from_json(data)

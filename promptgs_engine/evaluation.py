@@ -1,0 +1,158 @@
+"""Evaluate and render a finished run folder (``promptgs eval`` and ``promptgs render``)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from tqdm import tqdm
+
+from .config import TrainConfig
+from .data import Camera, Scene, load_colmap_scene
+from .errors import PromptGSError
+from .gaussians import load_ply, sh_degree_of
+from .metrics import masked_psnr, object_region_psnr, psnr, resize_mask, ssim
+from .render import render
+
+SUMMARY = "train.json"
+METRICS = "metrics.json"
+
+
+def load_run(run_dir: Path) -> tuple[TrainConfig, torch.nn.ParameterDict]:
+    run_dir = Path(run_dir)
+    if not (run_dir / "cfg.json").is_file():
+        raise PromptGSError(f"{run_dir}: not a PromptGS run folder (no cfg.json)")
+    cfg = TrainConfig.load(run_dir / "cfg.json")
+    return cfg, load_ply(run_dir / "point_cloud.ply")
+
+
+def render_view(
+    params: torch.nn.ParameterDict, camera: Camera, backend: str = "auto"
+) -> torch.Tensor:
+    """Render one camera with the Gaussians in ``params``; [H, W, 3] in [0, 1]."""
+    with torch.no_grad():
+        device = params["means"].device
+        img, _, _ = render(
+            params["means"],
+            params["quats"],
+            torch.exp(params["scales"]),
+            torch.sigmoid(params["opacities"]),
+            torch.cat([params["sh0"], params["shN"]], dim=1),
+            camera.world_to_camera[None].to(device),
+            camera.K[None].to(device),
+            camera.width,
+            camera.height,
+            sh_degree=sh_degree_of(params),
+            backend=backend,
+        )
+    return img[0].clamp(0, 1)
+
+
+def find_mask(mask_dir: Path, image_name: str) -> Path | None:
+    """The mask of an image: the same file name, or the same stem with any extension."""
+    exact = mask_dir / image_name
+    if exact.is_file():
+        return exact
+    matches = sorted(mask_dir.glob(Path(image_name).stem + ".*"))
+    return matches[0] if matches else None
+
+
+def read_mask(path: Path) -> torch.Tensor:
+    """An object-id mask [H, W] int64: 0 = background; a white/black mask is one object."""
+    arr = np.asarray(Image.open(path))
+    if arr.ndim == 3:
+        arr = arr[..., :3].max(axis=-1)
+    return torch.from_numpy(arr.astype(np.int64))
+
+
+def _mean(values: list[float | None]) -> float | None:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.mean(finite)) if finite else None
+
+
+def evaluate(
+    params: torch.nn.ParameterDict,
+    cameras: list[Camera],
+    downscale: int = 1,
+    mask_dir: Path | None = None,
+    backend: str = "auto",
+    quiet: bool = False,
+) -> dict:
+    """PSNR/SSIM on ``cameras``; with ``mask_dir``, object-pixel and object-region PSNR."""
+    if not cameras:
+        raise PromptGSError("no test views to evaluate (the dataset has no test split)")
+    if mask_dir is not None and not Path(mask_dir).is_dir():
+        raise PromptGSError(f"{mask_dir}: mask folder not found")
+    per_image = []
+    for camera in tqdm(cameras, desc="eval", disable=quiet, unit="view"):
+        cam = camera.downscaled(downscale)
+        gt = cam.load_image()
+        img = render_view(params, cam, backend)
+        row = {"image": camera.name, "psnr": psnr(img, gt), "ssim": ssim(img, gt)}
+        if mask_dir is not None:
+            mask_path = find_mask(Path(mask_dir), camera.name)
+            if mask_path is not None:
+                ids = resize_mask(read_mask(mask_path), cam.height, cam.width)
+                row["masked_psnr"] = masked_psnr(img, gt, ids > 0)
+                row["object_region_psnr"] = object_region_psnr(img, gt, ids)
+        per_image.append(row)
+    metrics = {
+        "psnr": _mean([r["psnr"] for r in per_image]),
+        "ssim": _mean([r["ssim"] for r in per_image]),
+        "n_test_views": len(per_image),
+        "resolution": [cameras[0].downscaled(downscale).width, cameras[0].downscaled(downscale).height],
+    }
+    if mask_dir is not None:
+        metrics["masked_psnr"] = _mean([r.get("masked_psnr") for r in per_image])
+        metrics["object_region_psnr"] = _mean([r.get("object_region_psnr") for r in per_image])
+        metrics["n_masked_views"] = sum(r.get("masked_psnr") is not None for r in per_image)
+    metrics["per_image"] = per_image
+    return metrics
+
+
+def evaluate_run(
+    run_dir: Path, mask_dir: Path | None = None, scene: Scene | None = None, quiet: bool = False
+) -> dict:
+    """Evaluate a run folder on its test views; writes and returns ``metrics.json``."""
+    run_dir = Path(run_dir)
+    cfg, params = load_run(run_dir)
+    if scene is None:
+        scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
+    if mask_dir is None and (Path(cfg.dataset) / "object_masks").is_dir():
+        mask_dir = Path(cfg.dataset) / "object_masks"
+    metrics = evaluate(params, scene.test_cameras, cfg.downscale, mask_dir, backend=cfg.backend, quiet=quiet)
+    summary_path = run_dir / SUMMARY
+    if summary_path.is_file():
+        metrics = {**json.loads(summary_path.read_text()), **metrics}
+    metrics["n_gaussians"] = int(params["means"].shape[0])
+    tmp = run_dir / (METRICS + ".tmp")
+    tmp.write_text(json.dumps(metrics, indent=2))
+    tmp.replace(run_dir / METRICS)
+    return metrics
+
+
+def render_run(run_dir: Path, out_dir: Path, camera_names: list[str] | None = None, quiet: bool = False) -> list[Path]:
+    """Render the named cameras (all when None) of a run's dataset to PNG files."""
+    cfg, params = load_run(run_dir)
+    scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
+    cameras = {c.name: c for c in scene.train_cameras + scene.test_cameras}
+    if camera_names is None:
+        names = sorted(cameras)
+    else:
+        unknown = [n for n in camera_names if n not in cameras]
+        if unknown:
+            raise PromptGSError(f"no camera named {unknown[0]!r} in {cfg.dataset}")
+        names = camera_names
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name in tqdm(names, desc="render", disable=quiet, unit="view"):
+        img = render_view(params, cameras[name].downscaled(cfg.downscale), cfg.backend)
+        path = out_dir / (Path(name).stem + ".png")
+        Image.fromarray((img.numpy() * 255).round().astype(np.uint8)).save(path)
+        written.append(path)
+    return written

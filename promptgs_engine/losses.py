@@ -1,0 +1,85 @@
+"""Image losses. Images are ``[B, H, W, C]`` float tensors in [0, 1] (the render layout)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+_SSIM_WINDOW = 11
+_SSIM_SIGMA = 1.5
+_C1 = 0.01**2
+_C2 = 0.03**2
+
+
+def _gaussian_kernel(size: int, sigma: float, dtype, device) -> torch.Tensor:
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
+    k = torch.exp(-(x**2) / (2 * sigma**2))
+    return k / k.sum()
+
+
+def _blur(x: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """Separable Gaussian blur of [B, C, H, W] with zero padding ("same" size)."""
+    c = x.shape[1]
+    pad = kernel.numel() // 2
+    kx = kernel.view(1, 1, 1, -1).expand(c, 1, 1, -1)
+    ky = kernel.view(1, 1, -1, 1).expand(c, 1, -1, 1)
+    x = F.conv2d(x, kx, padding=(0, pad), groups=c)
+    return F.conv2d(x, ky, padding=(pad, 0), groups=c)
+
+
+def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM (11×11 Gaussian window, σ = 1.5, as in 3DGS), [B, H, W, C]."""
+    x = img.permute(0, 3, 1, 2)
+    y = ref.permute(0, 3, 1, 2)
+    k = _gaussian_kernel(_SSIM_WINDOW, _SSIM_SIGMA, x.dtype, x.device)
+    # One blur call over the five stacked statistics is faster than five calls.
+    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), k)
+    mu_x, mu_y, xx, yy, xy = stats.chunk(5, dim=1)
+    sigma_x = xx - mu_x**2
+    sigma_y = yy - mu_y**2
+    sigma_xy = xy - mu_x * mu_y
+    num = (2 * mu_x * mu_y + _C1) * (2 * sigma_xy + _C2)
+    den = (mu_x**2 + mu_y**2 + _C1) * (sigma_x + sigma_y + _C2)
+    return (num / den).permute(0, 2, 3, 1)
+
+
+def ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    return ssim_map(img, ref).mean()
+
+
+def l1(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    return (img - ref).abs().mean()
+
+
+def d_ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Structural dissimilarity (1 − SSIM), the 3DGS convention (not halved)."""
+    return 1.0 - ssim(img, ref)
+
+
+def sobel_magnitude(img: torch.Tensor) -> torch.Tensor:
+    """Gradient magnitude of each channel with 3×3 Sobel filters, [B, H, W, C]."""
+    x = img.permute(0, 3, 1, 2)
+    c = x.shape[1]
+    gx = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=x.dtype, device=x.device)
+    kx = gx.view(1, 1, 3, 3).expand(c, 1, 3, 3)
+    ky = gx.t().reshape(1, 1, 3, 3).expand(c, 1, 3, 3)
+    xp = F.pad(x, (1, 1, 1, 1), mode="replicate")
+    mag = torch.sqrt(F.conv2d(xp, kx, groups=c) ** 2 + F.conv2d(xp, ky, groups=c) ** 2 + 1e-12)
+    return mag.permute(0, 2, 3, 1)
+
+
+def edge_loss(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """L1 between Sobel gradient magnitudes: penalises missing or blurred edges."""
+    return (sobel_magnitude(img) - sobel_magnitude(ref)).abs().mean()
+
+
+def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2) -> torch.Tensor:
+    """The 3DGS training loss: (1 − λ)·L1 + λ·D-SSIM."""
+    return (1.0 - ssim_lambda) * l1(img, ref) + ssim_lambda * d_ssim(img, ref)
+
+
+def per_pixel_loss(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2) -> torch.Tensor:
+    """The training loss before averaging, per pixel and summed over channels, [B, H, W]."""
+    l1_map = (img - ref).abs().mean(dim=-1)
+    dssim_map = (1.0 - ssim_map(img, ref)).mean(dim=-1)
+    return (1.0 - ssim_lambda) * l1_map + ssim_lambda * dssim_map

@@ -1,0 +1,376 @@
+"""The training loop: 3DGS optimisation with a pluggable densification strategy.
+
+A run folder holds ``cfg.json`` (settings), ``train.log``, ``ckpt.pt`` (the last good
+checkpoint, resumable), ``snapshots/`` (for the Blender add-on), and at the end
+``point_cloud.ply`` and ``metrics.json``. Files are written atomically, so a crash or a
+cancel never leaves a half-written checkpoint, and a failed run keeps the last good one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .config import TrainConfig
+from .data import Camera, Scene, load_colmap_scene
+from .errors import PromptGSError, TrainingError
+from .events import EventWriter, write_snapshot
+from .gaussians import PARAM_KEYS, init_from_points, save_ply
+from .losses import photometric_loss
+from .metrics import mse_to_psnr
+from .render import render
+from .strategies import DefaultSchedule, make_default_strategy
+
+log = logging.getLogger("promptgs.train")
+
+CHECKPOINT = "ckpt.pt"
+FINAL_PLY = "point_cloud.ply"
+
+
+def resolve_backend(backend: str) -> str:
+    if backend == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if backend == "cuda" and not torch.cuda.is_available():
+        raise PromptGSError("backend 'cuda' requested but torch sees no CUDA GPU (use --backend cpu)")
+    return backend
+
+
+def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse to write over a finished or interrupted run unless told to."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise PromptGSError(f"{out}: exists and is not a folder")
+    finished = (out / FINAL_PLY).exists() or (out / "metrics.json").exists()
+    started = (out / CHECKPOINT).exists() or (out / "cfg.json").exists()
+    if overwrite or resume:
+        return
+    if finished:
+        raise PromptGSError(f"{out}: already holds a finished run (use another --out, or --overwrite)")
+    if started:
+        raise PromptGSError(f"{out}: holds an unfinished run (use --resume to continue it, or --overwrite)")
+
+
+def make_optimizers(params: torch.nn.ParameterDict, cfg: TrainConfig, extent: float) -> dict:
+    """One Adam per parameter, as gsplat's strategies expect (one param group each)."""
+    lrs = {
+        "means": cfg.means_lr * extent,
+        "scales": cfg.scales_lr,
+        "quats": cfg.quats_lr,
+        "opacities": cfg.opacities_lr,
+        "sh0": cfg.sh0_lr,
+        "shN": cfg.shN_lr,
+    }
+    return {
+        k: torch.optim.Adam([{"params": [params[k]], "lr": lrs[k], "name": k}], eps=1e-15)
+        for k in PARAM_KEYS
+    }
+
+
+def atomic_torch_save(obj: Any, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    tmp.replace(path)
+
+
+@dataclass
+class StepResult:
+    loss: float
+    psnr: float
+    extras: dict = field(default_factory=dict)
+
+
+class Trainer:
+    """Owns the Gaussians, the optimisers and the strategy for one run."""
+
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        scene: Scene | None = None,
+        events: EventWriter | None = None,
+        quiet: bool = False,
+    ):
+        cfg.validate()
+        self.cfg = cfg
+        self.out = Path(cfg.out)
+        self.events = events or EventWriter()
+        self.quiet = quiet or self.events.enabled
+        self.backend = resolve_backend(cfg.backend)
+        self.device = torch.device("cuda" if self.backend == "cuda" else "cpu")
+        self.scene = scene if scene is not None else load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
+        if not self.scene.train_cameras:
+            raise PromptGSError(f"{cfg.dataset}: no training images")
+        torch.manual_seed(cfg.seed)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.schedule = DefaultSchedule.for_iterations(cfg.iterations)
+        self.params = init_from_points(
+            self.scene.points, self.scene.point_colors, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity
+        ).to(self.device)
+        self.optimizers = make_optimizers(self.params, cfg, self.scene.extent)
+        gamma = 0.01 ** (1.0 / cfg.iterations)
+        self.schedulers = [torch.optim.lr_scheduler.ExponentialLR(self.optimizers["means"], gamma=gamma)]
+        self.strategy = self._make_strategy()
+        self.strategy.check_sanity(self.params, self.optimizers)
+        self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene.extent)
+        self.step = 0
+        self.train_seconds = 0.0
+        self._order: list[int] = []
+
+    # -- set-up -----------------------------------------------------------------------
+
+    def _make_strategy(self):
+        if self.cfg.strategy in ("3dgs", "absgs"):
+            return make_default_strategy(self.cfg.strategy, self.schedule)
+        raise PromptGSError(f"strategy {self.cfg.strategy!r} is not available in this build")
+
+    @property
+    def absgrad(self) -> bool:
+        return bool(getattr(self.strategy, "absgrad", False))
+
+    def active_sh_degree(self, step: int) -> int:
+        return min(step // self.schedule.sh_degree_interval, self.cfg.sh_degree)
+
+    def next_camera_index(self) -> int:
+        """Walk a fresh random permutation of the training views, like 3DGS."""
+        if not self._order:
+            self._order = list(self.rng.permutation(len(self.scene.train_cameras)))
+        return int(self._order.pop())
+
+    # -- one step ---------------------------------------------------------------------
+
+    def render_camera(self, camera: Camera, sh_degree: int | None = None, **kwargs):
+        """Render one camera at its own resolution; returns (image [H,W,C], alpha, info)."""
+        p = self.params
+        colors = torch.cat([p["sh0"], p["shN"]], dim=1)
+        img, alpha, info = render(
+            p["means"],
+            p["quats"],
+            torch.exp(p["scales"]),
+            torch.sigmoid(p["opacities"]),
+            colors,
+            camera.world_to_camera[None].to(self.device),
+            camera.K[None].to(self.device),
+            camera.width,
+            camera.height,
+            sh_degree=self.cfg.sh_degree if sh_degree is None else sh_degree,
+            backend=self.backend,
+            **kwargs,
+        )
+        return img[0], alpha[0], info
+
+    def train_step(self) -> StepResult:
+        step = self.step
+        camera = self.scene.train_cameras[self.next_camera_index()].downscaled(self.cfg.downscale)
+        gt = camera.load_image().to(self.device)
+        img, _, info = self.render_camera(camera, sh_degree=self.active_sh_degree(step), absgrad=self.absgrad)
+        loss = photometric_loss(img[None], gt[None], self.cfg.ssim_lambda)
+        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
+        loss.backward()
+        loss_value = float(loss)
+        if not math.isfinite(loss_value):
+            raise TrainingError(f"step {step}: the loss is {loss_value} (camera {camera.name})")
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        for sched in self.schedulers:
+            sched.step()
+        self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, step, info, packed=False)
+        self.check_finite()
+        with torch.no_grad():
+            mse = float(((img.detach() - gt) ** 2).mean())
+        return StepResult(loss=loss_value, psnr=mse_to_psnr(mse))
+
+    def check_finite(self) -> None:
+        for key, value in self.params.items():
+            if not bool(torch.isfinite(value).all()):
+                raise TrainingError(
+                    f"step {self.step}: NaN/inf in parameter '{key}'; the last good checkpoint is kept in {self.out / CHECKPOINT}"
+                )
+
+    # -- files ------------------------------------------------------------------------
+
+    def checkpoint_dict(self) -> dict:
+        return {
+            "step": self.step,
+            "train_seconds": self.train_seconds,
+            "params": {k: v.detach().cpu() for k, v in self.params.items()},
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "schedulers": [s.state_dict() for s in self.schedulers],
+            "strategy_state": {
+                k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in self.strategy_state.items()
+            },
+            "rng": self.rng.bit_generator.state,
+            "order": list(self._order),
+            "torch_rng": torch.get_rng_state(),
+        }
+
+    def save_checkpoint(self) -> None:
+        atomic_torch_save(self.checkpoint_dict(), self.out / CHECKPOINT)
+
+    def load_checkpoint(self, path: Path) -> None:
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as exc:
+            raise PromptGSError(f"{path}: cannot read checkpoint ({exc})") from exc
+        self.params = torch.nn.ParameterDict(
+            {k: torch.nn.Parameter(v.to(self.device)) for k, v in ckpt["params"].items()}
+        )
+        self.optimizers = make_optimizers(self.params, self.cfg, self.scene.extent)
+        for k, opt in self.optimizers.items():
+            opt.load_state_dict(ckpt["optimizers"][k])
+        gamma = 0.01 ** (1.0 / self.cfg.iterations)
+        self.schedulers = [torch.optim.lr_scheduler.ExponentialLR(self.optimizers["means"], gamma=gamma)]
+        for s, state in zip(self.schedulers, ckpt["schedulers"]):
+            s.load_state_dict(state)
+        self.strategy_state = {
+            k: (v.to(self.device) if isinstance(v, torch.Tensor) else v) for k, v in ckpt["strategy_state"].items()
+        }
+        self.rng.bit_generator.state = ckpt["rng"]
+        self._order = list(ckpt["order"])
+        torch.set_rng_state(ckpt["torch_rng"])
+        self.step = int(ckpt["step"])
+        self.train_seconds = float(ckpt["train_seconds"])
+
+    def snapshot(self) -> Path:
+        folder = self.out / "snapshots"
+        folder.mkdir(exist_ok=True)
+        path = folder / f"step_{self.step:06d}.npz"
+        write_snapshot(path, self.params)
+        self.events.emit("snapshot", step=self.step, path=str(path), n_gaussians=self.n_gaussians)
+        return path
+
+    @property
+    def n_gaussians(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    # -- the run ----------------------------------------------------------------------
+
+    def train(self) -> dict:
+        """Train to ``cfg.iterations``, then write the PLY and ``metrics.json``."""
+        cfg = self.cfg
+        self.events.emit(
+            "start",
+            out=str(self.out),
+            iterations=cfg.iterations,
+            backend=self.backend,
+            strategy=cfg.strategy,
+            n_train=len(self.scene.train_cameras),
+            n_test=len(self.scene.test_cameras),
+            n_gaussians=self.n_gaussians,
+        )
+        bar = tqdm(total=cfg.iterations, initial=self.step, desc=f"train {cfg.strategy}", disable=self.quiet, unit="step")
+        loss_ema: float | None = None
+        while self.step < cfg.iterations:
+            t0 = time.perf_counter()
+            result = self.train_step()
+            self.train_seconds += time.perf_counter() - t0
+            self.step += 1
+            loss_ema = result.loss if loss_ema is None else 0.9 * loss_ema + 0.1 * result.loss
+            bar.update(1)
+            if self.step % cfg.progress_every == 0 or self.step == cfg.iterations:
+                bar.set_postfix(loss=f"{loss_ema:.4f}", psnr=f"{result.psnr:.2f}", n=self.n_gaussians)
+                per_step = self.train_seconds / max(self.step, 1)
+                self.events.emit(
+                    "progress",
+                    step=self.step,
+                    iterations=cfg.iterations,
+                    loss=loss_ema,
+                    psnr=result.psnr,
+                    n_gaussians=self.n_gaussians,
+                    elapsed_s=self.train_seconds,
+                    eta_s=per_step * (cfg.iterations - self.step),
+                )
+            if cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
+                self.save_checkpoint()
+            if cfg.snapshot_every and self.step % cfg.snapshot_every == 0:
+                self.snapshot()
+        bar.close()
+        self.save_checkpoint()
+        save_ply(self.params, self.out / FINAL_PLY)
+        if self.events.enabled and not cfg.snapshot_every:
+            self.snapshot()
+        log.info("trained %d steps in %.1f s, %d Gaussians", self.step, self.train_seconds, self.n_gaussians)
+        return self.run_summary()
+
+    def run_summary(self) -> dict:
+        return {
+            "iterations": self.step,
+            "train_seconds": self.train_seconds,
+            "n_gaussians": self.n_gaussians,
+            "backend": self.backend,
+            "strategy": self.cfg.strategy,
+        }
+
+
+def _attach_log_file(path: Path) -> logging.Handler:
+    handler = logging.FileHandler(path)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger("promptgs")
+    root.setLevel(logging.INFO)
+    root.addHandler(handler)
+    return handler
+
+
+def run_training(
+    cfg: TrainConfig,
+    resume: bool = False,
+    overwrite: bool = False,
+    events: EventWriter | None = None,
+    quiet: bool = False,
+) -> dict:
+    """Train a run folder from start (or from its checkpoint), evaluate it, return metrics.
+
+    The dataset is read before anything is written, so bad input leaves ``cfg.out``
+    untouched. On failure the error is logged and sent as an event, and the last good
+    checkpoint stays in the run folder.
+    """
+    import json
+
+    from .evaluation import SUMMARY, evaluate_run
+
+    events = events or EventWriter()
+    out = Path(cfg.out)
+    check_out_dir(out, resume, overwrite)
+    if resume and not (out / CHECKPOINT).is_file():
+        raise PromptGSError(f"{out}: nothing to resume (no {CHECKPOINT})")
+    if resume and (out / "cfg.json").is_file():
+        saved = TrainConfig.load(out / "cfg.json")
+        saved.iterations = cfg.iterations  # a resumed run may be extended
+        cfg = saved
+    cfg.validate()
+    scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
+    out.mkdir(parents=True, exist_ok=True)
+    if overwrite and not resume:
+        for name in (CHECKPOINT, FINAL_PLY, "metrics.json", SUMMARY):
+            (out / name).unlink(missing_ok=True)
+    (out / "cfg.json").write_text(json.dumps(cfg.to_json(), indent=2))
+    log_path = out / "train.log"
+    handler = _attach_log_file(log_path)
+    trainer = None
+    try:
+        trainer = Trainer(cfg, scene=scene, events=events, quiet=quiet)
+        if resume:
+            trainer.load_checkpoint(out / CHECKPOINT)
+            log.info("resumed at step %d", trainer.step)
+        summary = trainer.train()
+        (out / SUMMARY).write_text(json.dumps(summary, indent=2))
+        metrics = evaluate_run(out, scene=scene, quiet=trainer.quiet)
+        events.emit("done", out=str(out), ply=str(out / FINAL_PLY), metrics={k: v for k, v in metrics.items() if k != "per_image"})
+        return metrics
+    except (Exception, KeyboardInterrupt) as exc:
+        step = trainer.step if trainer is not None else None
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        log.exception("training failed at step %s", step)
+        events.emit("error", message=message, step=step, log=str(log_path))
+        raise
+    finally:
+        logging.getLogger("promptgs").removeHandler(handler)
+        handler.close()

@@ -1,0 +1,64 @@
+import math
+
+import torch
+
+from promptgs_engine import losses, metrics
+
+
+def test_ssim_is_one_for_identical_and_drops_with_noise():
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(1, 32, 40, 3, generator=g)
+    assert abs(float(losses.ssim(img, img)) - 1.0) < 1e-5
+    noisy = (img + 0.2 * torch.randn(img.shape, generator=g)).clamp(0, 1)
+    assert float(losses.ssim(noisy, img)) < 0.9
+    assert float(losses.d_ssim(noisy, img)) > 0.1
+
+
+def test_photometric_loss_gradient_flows():
+    img = torch.full((1, 16, 16, 3), 0.5, requires_grad=True)
+    ref = torch.zeros(1, 16, 16, 3)
+    loss = losses.photometric_loss(img, ref)
+    loss.backward()
+    assert img.grad is not None and float(img.grad.abs().sum()) > 0
+
+
+def test_edge_loss_sees_a_missing_edge_but_not_a_flat_offset():
+    ref = torch.zeros(1, 16, 16, 1)
+    ref[:, :, 8:] = 1.0
+    flat = torch.full_like(ref, 0.5)
+    shifted = ref * 0.5 + 0.25  # same edge position, lower contrast
+    assert float(losses.edge_loss(ref + 0.1, ref)) < 1e-5  # a constant offset has the same edges
+    assert float(losses.edge_loss(flat, ref)) > float(losses.edge_loss(shifted, ref)) > 0
+
+
+def test_psnr_and_masked_psnr_hand_computed():
+    ref = torch.zeros(4, 4, 3)
+    img = ref.clone()
+    img[0, 0] = 0.1  # one pixel wrong by 0.1 in all channels
+    assert math.isclose(metrics.psnr(img, ref), -10 * math.log10(0.01 / 16), rel_tol=1e-5)
+    mask = torch.zeros(4, 4, dtype=torch.bool)
+    mask[0, :2] = True  # the wrong pixel and a right one
+    assert math.isclose(metrics.masked_psnr(img, ref, mask), -10 * math.log10(0.01 / 2), rel_tol=1e-5)
+    assert metrics.masked_psnr(img, ref, torch.zeros_like(mask)) is None
+
+
+def test_object_region_is_the_dilated_box_of_each_object():
+    ids = torch.zeros(20, 20, dtype=torch.int64)
+    ids[5, 5] = 1
+    ids[15, 16:18] = 2
+    boxes = metrics.object_boxes(ids, dilate=4)
+    assert sorted(boxes) == [(1, 10, 1, 10), (11, 20, 12, 20)]
+    ref = torch.zeros(20, 20, 3)
+    img = torch.zeros(20, 20, 3)
+    img[0, 0] = 1.0  # outside both boxes: does not count
+    assert metrics.object_region_psnr(img, ref, ids) == float("inf")
+    img[1, 1] = 1.0  # inside the first box's dilation
+    assert math.isfinite(metrics.object_region_psnr(img, ref, ids))
+
+
+def test_resize_mask_keeps_a_one_pixel_object_when_downscaling():
+    ids = torch.zeros(16, 16, dtype=torch.int64)
+    ids[5, 6] = 3
+    small = metrics.resize_mask(ids, 4, 4)
+    assert small.shape == (4, 4)
+    assert int(small[1, 1]) == 3 and int((small > 0).sum()) == 1

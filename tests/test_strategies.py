@@ -1,0 +1,62 @@
+import torch
+from gsplat.strategy import DefaultStrategy
+
+from promptgs_engine.gaussians import init_from_points
+from promptgs_engine.strategies import DefaultSchedule, make_default_strategy
+from promptgs_engine.train import make_optimizers
+from promptgs_engine.config import TrainConfig
+
+
+def _setup(n=20):
+    g = torch.Generator().manual_seed(0)
+    params = init_from_points(torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g), sh_degree=0, init_opacity=0.9)
+    opts = make_optimizers(params, TrainConfig(dataset="d", out="o"), extent=1.0)
+    return params, opts
+
+
+def _fake_info(n):
+    means2d = torch.zeros(1, n, 2, requires_grad=True)
+    means2d.grad = torch.zeros(1, n, 2)
+    return {
+        "means2d": means2d,
+        "radii": torch.ones(1, n, 2, dtype=torch.int32),
+        "width": 10,
+        "height": 10,
+        "n_cameras": 1,
+        "gaussian_ids": None,
+    }
+
+
+def test_gsplat_default_strategy_never_resets_opacity():
+    """Documents gsplat 1.5.3's precedence bug that ResettingDefaultStrategy works around."""
+    params, opts = _setup()
+    s = DefaultStrategy(refine_start_iter=10_000, refine_stop_iter=20_000, reset_every=100)
+    state = s.initialize_state()
+    before = params["opacities"].detach().clone()
+    s.step_post_backward(params, opts, state, step=100, info=_fake_info(20))
+    assert torch.equal(params["opacities"].detach(), before)
+
+
+def test_resetting_strategy_resets_opacity_on_schedule():
+    params, opts = _setup()
+    sched = DefaultSchedule(refine_start_iter=10_000, refine_stop_iter=20_000, refine_every=100, reset_every=100, sh_degree_interval=100)
+    s = make_default_strategy("3dgs", sched)
+    state = s.initialize_state()
+    s.step_post_backward(params, opts, state, step=99, info=_fake_info(20))
+    assert torch.allclose(torch.sigmoid(params["opacities"]), torch.full((20,), 0.9))
+    s.step_post_backward(params, opts, state, step=100, info=_fake_info(20))
+    assert torch.all(torch.sigmoid(params["opacities"]) <= s.prune_opa * 2.0 + 1e-6)
+
+
+def test_absgs_uses_absolute_gradients_with_higher_threshold():
+    sched = DefaultSchedule.for_iterations(3000)
+    a, b = make_default_strategy("3dgs", sched), make_default_strategy("absgs", sched)
+    assert not a.absgrad and b.absgrad and b.grow_grad2d == 4 * a.grow_grad2d
+
+
+def test_schedule_scales_with_run_length():
+    full = DefaultSchedule.for_iterations(30_000)
+    assert (full.refine_start_iter, full.refine_stop_iter, full.refine_every, full.reset_every) == (500, 15_000, 100, 3000)
+    short = DefaultSchedule.for_iterations(3000)
+    assert short.refine_stop_iter == 1500 and short.reset_every == 300
+    assert short.refine_start_iter < short.refine_stop_iter
