@@ -176,6 +176,12 @@ def load_colmap_scene(
         w, h = sizes[i]
         K = _pinhole_K(cam)
         if (w, h) != (cam.width, cam.height):
+            sx, sy = w / cam.width, h / cam.height
+            if abs(sx - sy) > 0.02 * max(sx, sy):
+                raise DatasetError(
+                    f"{images_dir / im.name}: image is {w}x{h} but its camera {im.camera_id} is "
+                    f"{cam.width}x{cam.height} (a different aspect ratio; rotated image?)"
+                )
             K[0, :] *= w / cam.width
             K[1, :] *= h / cam.height
         cameras.append(

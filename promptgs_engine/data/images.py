@@ -31,7 +31,9 @@ def image_size(path: Path) -> tuple[int, int]:
             return int(im.width), int(im.height)
     except FileNotFoundError:
         raise DatasetError(f"{path}: image file not found") from None
-    except (UnidentifiedImageError, OSError) as e:
+    except UnidentifiedImageError:
+        raise DatasetError(f"{path}: unreadable image file (not an image format PIL can open)") from None
+    except OSError as e:
         raise DatasetError(f"{path}: unreadable image file ({e})") from None
 
 
@@ -54,7 +56,9 @@ def read_image_uint8(path: Path, downscale: int = 1) -> np.ndarray:
             return np.asarray(im, dtype=np.uint8).copy()
     except FileNotFoundError:
         raise DatasetError(f"{path}: image file not found") from None
-    except (UnidentifiedImageError, OSError) as e:
+    except UnidentifiedImageError:
+        raise DatasetError(f"{path}: unreadable image file (not an image format PIL can open)") from None
+    except OSError as e:
         raise DatasetError(f"{path}: unreadable image file ({e})") from None
 
 
