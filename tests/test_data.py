@@ -341,3 +341,11 @@ def test_truncated_image_fails_when_loaded(shared_data: Path, tmp_path: Path) ->
     cam = next(c for c in scene.cameras if c.name == "1.jpg")
     with pytest.raises(DatasetError, match="1.jpg: unreadable image"):
         cam.load_image()
+
+
+def test_cache_dir_from_environment(shared_data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    ds = copy_scene(shared_data / "fern", tmp_path / "fern")
+    monkeypatch.setenv("PROMPTGS_CACHE_DIR", str(tmp_path / "cache"))
+    scene = load_colmap_scene(ds)
+    assert (tmp_path / "cache") in scene.cameras[0].image_path.parents
+    assert not (ds / ".promptgs_cache").exists()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import os
 import re
 import struct
 from pathlib import Path
@@ -31,6 +33,24 @@ def find_model_dir(dataset: Path) -> Path:
     raise DatasetError(
         f"{dataset}: no COLMAP model found (expected cameras, images and points3D .bin or .txt in sparse/0 or sparse)"
     )
+
+
+def default_cache_root(dataset: Path) -> Path:
+    """Where undistorted copies go when no `cache_dir` is given.
+
+    `$PROMPTGS_CACHE_DIR/<name>-<hash>` when that variable is set, else
+    `DATASET/.promptgs_cache` when the dataset folder is writable, else
+    `~/.cache/promptgs/<name>-<hash>` (hash of the dataset's absolute path).
+    """
+    tag = f"{dataset.resolve().name}-{hashlib.sha1(str(dataset.resolve()).encode()).hexdigest()[:10]}"
+    env = os.environ.get("PROMPTGS_CACHE_DIR")
+    if env:
+        return Path(env).expanduser() / tag
+    local = dataset / CACHE_FOLDER
+    if local.is_dir() or os.access(dataset, os.W_OK):
+        return local
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "promptgs" / tag
 
 
 def _unknown_camera_model(model_dir: Path) -> str | None:
@@ -114,8 +134,9 @@ def load_colmap_scene(
       the model's cameras (the `images_4` convention), intrinsics are scaled by the
       actual width and height ratios.
     - PINHOLE and SIMPLE_PINHOLE cameras are used as they are; other perspective models
-      are undistorted by pycolmap into a cached pinhole copy under `cache_dir` (default
-      `path/.promptgs_cache`), reused while the source model and images are unchanged.
+      are undistorted by pycolmap into a cached pinhole copy under `cache_dir` (default:
+      see `default_cache_root`, normally `path/.promptgs_cache`), reused while the
+      source model and images are unchanged.
     - Test split: images sorted by name, index % test_every == 0 go to test
       (3DGS convention); `test_every=0` puts every image in train.
     - `extent` is 1.1 x the largest distance of a train camera centre from their mean.
@@ -163,7 +184,7 @@ def load_colmap_scene(
                     f"of camera {cam_id} are {prev[0]}x{prev[1]}"
                 )
         safe = re.sub(r"[^A-Za-z0-9_.-]", "_", images)
-        cache_root = Path(cache_dir) if cache_dir is not None else dataset / CACHE_FOLDER
+        cache_root = Path(cache_dir) if cache_dir is not None else default_cache_root(dataset)
         rec, images_dir = undistorted_model(rec, model_dir, images_dir, names, camera_sizes, cache_root / f"undistorted_{safe}")
         by_name = {im.name: int(im_id) for im_id, im in rec.images.items()}
         image_ids = [by_name[n] for n in names]
