@@ -15,7 +15,7 @@ import torch
 from ..errors import DatasetError
 from .images import image_size
 from .scene import Camera, Scene, nerf_normalization_radius
-from .undistort import PINHOLE_MODELS, camera_model_name, check_undistortable, needs_undistortion, undistorted_model
+from .undistort import camera_model_name, check_undistortable, needs_undistortion, undistorted_model
 
 MODEL_FILES = ("cameras", "images", "points3D")
 CACHE_FOLDER = ".promptgs_cache"
@@ -166,10 +166,8 @@ def load_colmap_scene(
         more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
         raise DatasetError(f"{images_dir / missing[0]}: image listed in the COLMAP model is missing on disk{more}")
 
-    for cam_id, cam in sorted(rec.cameras.items()):
-        if camera_model_name(cam) not in PINHOLE_MODELS:
-            check_undistortable(rec, model_dir)
-            break
+    if needs_undistortion(rec):
+        check_undistortable(rec, model_dir)
 
     sizes = {i: image_size(images_dir / rec.images[i].name) for i in image_ids}
 
