@@ -1,0 +1,153 @@
+"""One ``render()`` for all backends: the C++ CPU rasterizer and gsplat on CUDA.
+
+The signature and outputs mirror ``gsplat.rasterization(..., packed=False)`` so the same
+training and densification code (gsplat's ``DefaultStrategy`` included) drives both
+backends; see docs/interfaces.md, section "Rendering".
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import torch
+from torch import Tensor
+
+from .projection import camera_centers, project_gaussians
+from .sh import sh_to_color
+
+RENDER_MODES = ("RGB", "RGB+ED")
+BACKENDS = ("auto", "cpu", "cuda")
+
+
+class RenderBackendError(RuntimeError):
+    """The requested rendering backend cannot run here (no CUDA, extension not built)."""
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """Name of the backend ``render(backend=...)`` uses for tensors on ``device``."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if backend == "auto":
+        return "cuda" if device.type == "cuda" and torch.cuda.is_available() else "cpu"
+    if backend == "cuda" and not torch.cuda.is_available():
+        raise RenderBackendError("backend 'cuda' needs a CUDA GPU, but torch.cuda.is_available() is False")
+    if backend == "cuda" and device.type != "cuda":
+        raise RenderBackendError("backend 'cuda' needs the Gaussians and cameras on a CUDA device")
+    if backend == "cpu" and device.type != "cpu":
+        raise RenderBackendError("backend 'cpu' needs the Gaussians and cameras on the CPU")
+    return backend
+
+
+def render(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    sh_degree: int | None = None,
+    backgrounds: Tensor | None = None,
+    render_mode: str = "RGB",
+    absgrad: bool = False,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    backend: str = "auto",
+) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """Render N Gaussians into C pinhole cameras.
+
+    Args:
+        means [N,3], quats [N,4] wxyz (any norm), scales [N,3] and opacities [N] activated;
+        colors [N,K,3] SH coefficients when ``sh_degree`` is given, else [N,D] features;
+        viewmats [C,4,4] world-to-camera; Ks [C,3,3]; backgrounds [C,D] or None.
+        render_mode "RGB" or "RGB+ED" (expected depth appended as the last channel).
+
+    Returns:
+        colors [C,H,W,D(+1)], alphas [C,H,W,1], and ``info`` with ``means2d`` [C,N,2]
+        (a non-leaf tensor: call ``retain_grad()`` before backward; ``.absgrad`` is set in
+        backward when ``absgrad=True``), ``radii`` [C,N,2] int32 (0 = not visible),
+        ``depths`` [C,N], ``conics``, ``width``, ``height``, ``n_cameras``,
+        ``gaussian_ids`` (None) and ``backend``.
+    """
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"unknown render_mode {render_mode!r}; choose one of {', '.join(RENDER_MODES)}")
+    name = resolve_backend(backend, means.device)
+    if name == "cuda":
+        from .cuda import render_cuda
+
+        return render_cuda(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+            sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane,
+        )
+    from .cpu import rasterize_cpu
+
+    return render_with(
+        rasterize_cpu, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+        sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane, backend_name="cpu",
+    )
+
+
+def render_with(
+    rasterize: Callable[..., tuple[Tensor, Tensor]],
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    sh_degree: int | None,
+    backgrounds: Tensor | None,
+    render_mode: str,
+    absgrad: bool,
+    near_plane: float,
+    far_plane: float,
+    backend_name: str,
+) -> tuple[Tensor, Tensor, dict[str, Any]]:
+    """Projection + colour evaluation in torch, then ``rasterize`` (C++ or the test reference)."""
+    C = viewmats.shape[0]
+    N = means.shape[0]
+    means2d, conics, depths, radii = project_gaussians(
+        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane
+    )
+    if sh_degree is not None:
+        if colors.dim() != 3 or colors.shape[-1] != 3:
+            raise ValueError(f"with sh_degree, colors must be [N, K, 3]; got {list(colors.shape)}")
+        feats = sh_to_color(sh_degree, means, colors, camera_centers(viewmats))  # [C, N, 3]
+    else:
+        if colors.dim() != 2 or colors.shape[0] != N:
+            raise ValueError(f"without sh_degree, colors must be [N, D]; got {list(colors.shape)}")
+        feats = colors[None].expand(C, *colors.shape)
+    if render_mode == "RGB+ED":
+        feats = torch.cat([feats, depths[..., None]], dim=-1)
+        if backgrounds is not None:
+            backgrounds = torch.cat([backgrounds, torch.zeros_like(backgrounds[:, :1])], dim=-1)
+    out_colors, out_alphas = rasterize(
+        means2d, conics, feats, opacities, depths, radii, width, height, backgrounds, absgrad
+    )
+    if render_mode == "RGB+ED":
+        out_colors = torch.cat(
+            [out_colors[..., :-1], out_colors[..., -1:] / out_alphas.clamp(min=1e-10)], dim=-1
+        )
+    info: dict[str, Any] = {
+        "means2d": means2d,
+        "radii": radii,
+        "depths": depths,
+        "conics": conics,
+        "opacities": opacities,
+        "width": width,
+        "height": height,
+        "n_cameras": C,
+        "gaussian_ids": None,
+        "camera_ids": None,
+        "batch_ids": None,
+        "backend": backend_name,
+    }
+    return out_colors, out_alphas, info
+
+
+__all__ = ["render", "render_with", "resolve_backend", "RenderBackendError", "RENDER_MODES", "BACKENDS"]
