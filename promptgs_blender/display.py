@@ -1,0 +1,229 @@
+"""Points objects carrying per-point attributes, drawn with a geometry-nodes modifier.
+
+A points-only mesh keeps the data (``foreach_set`` of numpy arrays, no per-point Python)
+and can change its point count from one snapshot to the next while the object stays the
+same. The "PromptGS Points" node group draws each point as a small sphere (or as a
+point-cloud point) and picks one of 16 colour-map materials per point from the integer
+attribute ``display_bin``, so even Workbench shows the chosen attribute; bin −1 uses the
+"PromptGS RGB" material, which reads the ``color`` attribute (Material Preview, Cycles).
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+N_BINS = 16
+NODE_GROUP = "PromptGS Points"
+RGB_MATERIAL = "PromptGS RGB"
+# a perceptual dark-blue → green → yellow ramp (control points, linear RGB)
+_RAMP = np.array([[0.07, 0.02, 0.20], [0.10, 0.20, 0.55], [0.05, 0.45, 0.50],
+                  [0.20, 0.70, 0.25], [0.80, 0.85, 0.10], [1.00, 0.95, 0.35]])
+
+
+def colormap(t: np.ndarray) -> np.ndarray:
+    """RGB of values in [0, 1] on the ramp."""
+    t = np.clip(np.asarray(t, np.float64), 0.0, 1.0)
+    x = np.linspace(0.0, 1.0, len(_RAMP))
+    return np.stack([np.interp(t, x, _RAMP[:, c]) for c in range(3)], axis=-1)
+
+
+def bin_material(index: int) -> bpy.types.Material:
+    name = f"PromptGS Map {index:02d}"
+    mat = bpy.data.materials.get(name)
+    if mat is None:
+        mat = bpy.data.materials.new(name)
+        rgb = colormap((index + 0.5) / N_BINS)
+        mat.diffuse_color = (*rgb, 1.0)
+        mat.use_nodes = True
+        tree = mat.node_tree
+        tree.nodes.clear()
+        emit = tree.nodes.new("ShaderNodeEmission")
+        emit.inputs["Color"].default_value = (*rgb, 1.0)
+        out = tree.nodes.new("ShaderNodeOutputMaterial")
+        tree.links.new(emit.outputs[0], out.inputs["Surface"])
+    return mat
+
+
+def rgb_material() -> bpy.types.Material:
+    mat = bpy.data.materials.get(RGB_MATERIAL)
+    if mat is None:
+        mat = bpy.data.materials.new(RGB_MATERIAL)
+        mat.diffuse_color = (0.6, 0.6, 0.6, 1.0)
+        mat.use_nodes = True
+        tree = mat.node_tree
+        tree.nodes.clear()
+        attr = tree.nodes.new("ShaderNodeAttribute")
+        attr.attribute_name = "color"
+        emit = tree.nodes.new("ShaderNodeEmission")
+        out = tree.nodes.new("ShaderNodeOutputMaterial")
+        tree.links.new(attr.outputs["Color"], emit.inputs["Color"])
+        tree.links.new(emit.outputs[0], out.inputs["Surface"])
+    return mat
+
+
+def node_group() -> bpy.types.NodeTree:
+    """The shared geometry-nodes group (inputs: Geometry, Radius, Spheres)."""
+    group = bpy.data.node_groups.get(NODE_GROUP)
+    if group is not None:
+        return group
+    group = bpy.data.node_groups.new(NODE_GROUP, "GeometryNodeTree")
+    face = group.interface
+    face.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    radius = face.new_socket("Radius", in_out="INPUT", socket_type="NodeSocketFloat")
+    radius.default_value, radius.min_value = 0.01, 0.0
+    spheres = face.new_socket("Spheres", in_out="INPUT", socket_type="NodeSocketBool")
+    spheres.default_value = True
+    face.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    nodes, links = group.nodes, group.links
+    g_in, g_out = nodes.new("NodeGroupInput"), nodes.new("NodeGroupOutput")
+
+    to_points = nodes.new("GeometryNodeMeshToPoints")
+    links.new(g_in.outputs["Geometry"], to_points.inputs["Mesh"])
+    links.new(g_in.outputs["Radius"], to_points.inputs["Radius"])
+    ico = nodes.new("GeometryNodeMeshIcoSphere")
+    ico.inputs["Subdivisions"].default_value = 1
+    links.new(g_in.outputs["Radius"], ico.inputs["Radius"])
+    instance = nodes.new("GeometryNodeInstanceOnPoints")
+    links.new(g_in.outputs["Geometry"], instance.inputs["Points"])
+    links.new(ico.outputs["Mesh"], instance.inputs["Instance"])
+    realize = nodes.new("GeometryNodeRealizeInstances")
+    links.new(instance.outputs["Instances"], realize.inputs["Geometry"])
+    switch = nodes.new("GeometryNodeSwitch")
+    switch.input_type = "GEOMETRY"
+    links.new(g_in.outputs["Spheres"], switch.inputs["Switch"])
+    links.new(to_points.outputs["Points"], switch.inputs["False"])
+    links.new(realize.outputs["Geometry"], switch.inputs["True"])
+
+    set_rgb = nodes.new("GeometryNodeSetMaterial")
+    set_rgb.inputs["Material"].default_value = rgb_material()
+    links.new(switch.outputs[0], set_rgb.inputs["Geometry"])
+    geometry = set_rgb.outputs["Geometry"]
+    bins = nodes.new("GeometryNodeInputNamedAttribute")
+    bins.data_type = "INT"
+    bins.inputs["Name"].default_value = "display_bin"
+    for k in range(N_BINS):
+        equal = nodes.new("FunctionNodeCompare")
+        equal.data_type, equal.operation = "INT", "EQUAL"
+        links.new(bins.outputs["Attribute"], equal.inputs[2])
+        equal.inputs[3].default_value = k
+        set_mat = nodes.new("GeometryNodeSetMaterial")
+        set_mat.inputs["Material"].default_value = bin_material(k)
+        links.new(geometry, set_mat.inputs["Geometry"])
+        links.new(equal.outputs["Result"], set_mat.inputs["Selection"])
+        geometry = set_mat.outputs["Geometry"]
+    links.new(geometry, g_out.inputs["Geometry"])
+    return group
+
+
+def _socket_id(group: bpy.types.NodeTree, name: str) -> str:
+    for item in group.interface.items_tree:
+        if getattr(item, "in_out", None) == "INPUT" and item.name == name:
+            return item.identifier
+    raise KeyError(name)
+
+
+def set_style(obj: bpy.types.Object, radius: float | None = None, spheres: bool | None = None) -> None:
+    mod = obj.modifiers.get("PromptGS Display")
+    if mod is None:
+        return
+    if radius is not None:
+        mod[_socket_id(mod.node_group, "Radius")] = float(radius)
+    if spheres is not None:
+        mod[_socket_id(mod.node_group, "Spheres")] = bool(spheres)
+    obj.update_tag()
+
+
+def points_object(name: str, collection: bpy.types.Collection, parent: bpy.types.Object | None = None,
+                  radius: float = 0.01, spheres: bool = True) -> bpy.types.Object:
+    """The named points object, created on first use (its identity survives updates)."""
+    obj = bpy.data.objects.get(name)
+    if obj is None or obj.type != "MESH":
+        mesh = bpy.data.meshes.new(name)
+        obj = bpy.data.objects.new(name, mesh)
+        mod = obj.modifiers.new("PromptGS Display", "NODES")
+        mod.node_group = node_group()
+        set_style(obj, radius, spheres)
+    if collection not in obj.users_collection:
+        collection.objects.link(obj)
+    if parent is not None and obj.parent != parent:
+        obj.parent = parent
+        obj.matrix_parent_inverse.identity()
+        obj.matrix_basis.identity()
+    return obj
+
+
+def _attribute_kind(array: np.ndarray, name: str) -> tuple[str, str, int]:
+    width = 1 if array.ndim == 1 else array.shape[1]
+    if name == "color" or name == "display_color":
+        return "FLOAT_COLOR", "color", 4
+    if array.dtype.kind in "iu" and width == 1:
+        return "INT", "value", 1
+    return {1: ("FLOAT", "value", 1), 3: ("FLOAT_VECTOR", "vector", 3),
+            4: ("QUATERNION", "value", 4)}[width]
+
+
+def set_points(obj: bpy.types.Object, positions: np.ndarray, attributes: dict[str, np.ndarray]) -> None:
+    """Replace the points and their attributes (same object and mesh datablock)."""
+    mesh = obj.data
+    positions = np.ascontiguousarray(positions, np.float32).reshape(-1, 3)
+    n = len(positions)
+    if len(mesh.vertices) != n:
+        mesh.clear_geometry()
+        mesh.vertices.add(n)
+    mesh.vertices.foreach_set("co", positions.ravel())
+    for name, array in attributes.items():
+        array = np.asarray(array)
+        data_type, prop, width = _attribute_kind(array, name)
+        if data_type == "FLOAT_COLOR" and array.ndim == 2 and array.shape[1] == 3:
+            array = np.concatenate([array, np.ones((n, 1), array.dtype)], axis=1)
+        attr = mesh.attributes.get(name)
+        if attr is not None and (attr.data_type != data_type or attr.domain != "POINT"):
+            mesh.attributes.remove(attr)
+            attr = None
+        if attr is None:
+            attr = mesh.attributes.new(name, data_type, "POINT")
+        dtype = np.int32 if data_type == "INT" else np.float32
+        attr.data.foreach_set(prop, np.ascontiguousarray(array, dtype).reshape(n * width))
+    mesh.update()
+
+
+def get_attribute(obj: bpy.types.Object, name: str) -> np.ndarray:
+    """A point attribute as a numpy array ([N] or [N, width])."""
+    mesh = obj.data
+    attr = mesh.attributes[name]
+    n = len(mesh.vertices)
+    if name == "position":
+        out = np.empty(n * 3, np.float32)
+        mesh.vertices.foreach_get("co", out)
+        return out.reshape(n, 3)
+    width = {"FLOAT": 1, "INT": 1, "FLOAT_VECTOR": 3, "QUATERNION": 4, "FLOAT_COLOR": 4}[attr.data_type]
+    prop = {"FLOAT_VECTOR": "vector", "FLOAT_COLOR": "color"}.get(attr.data_type, "value")
+    out = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
+    attr.data.foreach_get(prop, out)
+    return out if width == 1 else out.reshape(n, width)
+
+
+def color_by(obj: bpy.types.Object, name: str) -> None:
+    """Colour the points by one attribute: colour-map bins, or RGB for ``color``."""
+    mesh = obj.data
+    n = len(mesh.vertices)
+    if name == "color" or name not in mesh.attributes:
+        bins = np.full(n, -1, np.int32)
+    else:
+        values = get_attribute(obj, name).astype(np.float64)
+        if values.ndim == 2:
+            values = values.mean(axis=1) if name == "scale" else np.linalg.norm(values, axis=1)
+        lo, hi = (np.percentile(values, [2, 98]) if n else (0.0, 1.0))
+        t = (values - lo) / (hi - lo) if hi > lo else np.zeros(n)
+        bins = np.clip((t * N_BINS).astype(np.int32), 0, N_BINS - 1)
+    set_points_attribute(obj, "display_bin", bins)
+    obj["promptgs_color_by"] = name
+
+
+def set_points_attribute(obj: bpy.types.Object, name: str, values: np.ndarray) -> None:
+    mesh = obj.data
+    data_type, prop, width = _attribute_kind(np.asarray(values), name)
+    attr = mesh.attributes.get(name) or mesh.attributes.new(name, data_type, "POINT")
+    attr.data.foreach_set(prop, np.ascontiguousarray(values).ravel())
+    mesh.update()

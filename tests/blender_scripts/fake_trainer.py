@@ -1,0 +1,72 @@
+"""A stand-in for ``python -m promptgs_engine train`` that speaks the events protocol.
+
+Used as the add-on's "trainer Python" in tests (through a small executable wrapper):
+parses ``--out`` and ``--job``, writes snapshot ``.npz`` files with numpy and prints
+JSON-lines events. ``FAKE_TRAINER_MODE`` picks the behaviour: ``ok`` (default), ``crash``
+(stderr lines, exit code 3), ``slow`` (runs until interrupted; SIGINT stops it cleanly).
+"""
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def emit(**event):
+    event["time"] = time.time()
+    print(json.dumps(event), flush=True)
+
+
+def snapshot(out: Path, step: int, n: int, seed: int) -> Path:
+    rng = np.random.default_rng(seed + step)
+    q = rng.normal(size=(n, 4)).astype(np.float32)
+    data = {
+        "means": rng.normal(size=(n, 3)).astype(np.float32),
+        "opacity": rng.uniform(size=n).astype(np.float32),
+        "scale": rng.uniform(0.01, 0.1, size=(n, 3)).astype(np.float32),
+        "rotation": q / np.linalg.norm(q, axis=1, keepdims=True),
+        "color": rng.uniform(size=(n, 3)).astype(np.float32),
+        "score": rng.uniform(size=n).astype(np.float32),
+        "error": rng.uniform(size=n).astype(np.float32),
+        "field_centers": rng.normal(size=(64, 3)).astype(np.float32),
+        "field_loss": rng.uniform(size=64).astype(np.float32),
+        "field_attention": rng.uniform(size=64).astype(np.float32),
+    }
+    path = out / "snapshots" / f"step_{step:06d}.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **data)
+    return path
+
+
+def main(argv):
+    mode = os.environ.get("FAKE_TRAINER_MODE", "ok")
+    out = Path(argv[argv.index("--out") + 1])
+    job = json.loads(Path(argv[argv.index("--job") + 1]).read_text()) if "--job" in argv else {}
+    iterations = int(job.get("iterations", 30))
+    print("fake trainer: not an event line", flush=True)
+    if mode == "crash":
+        print("Traceback (most recent call last):\nRuntimeError: the fake trainer crashed", file=sys.stderr)
+        sys.exit(3)
+    emit(event="start", out=str(out), iterations=iterations, backend="cpu", strategy=job.get("strategy"),
+         n_train=10, n_test=2, n_gaussians=100)
+    try:
+        step = 0
+        while mode == "slow" or step < iterations:
+            step += 1
+            n = 100 + 10 * step
+            emit(event="progress", step=step, iterations=iterations, loss=1.0 / step, psnr=10.0 + step,
+                 n_gaussians=n, elapsed_s=step * 0.01, eta_s=(iterations - step) * 0.01)
+            if step % 10 == 0:
+                emit(event="snapshot", step=step, path=str(snapshot(out, step, n, 0)), n_gaussians=n)
+            time.sleep(0.05 if mode == "slow" else 0.001)
+    except KeyboardInterrupt:
+        (out / "cancelled").write_text(str(step))
+        sys.exit(130)
+    emit(event="done", out=str(out), ply="", metrics={"psnr": 20.0})
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

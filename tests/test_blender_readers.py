@@ -1,0 +1,296 @@
+"""The add-on's bpy-free parts: COLMAP reader (against pycolmap), coordinates, PLY
+reader (against plyfile), the trainer process reader. Runs in the test process."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from promptgs_blender import colmap, coords, plyio, trainer
+
+REPO = Path(__file__).resolve().parents[1]
+FAKE_TRAINER = REPO / "tests" / "blender_scripts" / "fake_trainer.py"
+
+
+def _pycolmap_quat_wxyz(image) -> np.ndarray:
+    x, y, z, w = np.asarray(image.cam_from_world().rotation.quat)
+    return np.array([w, x, y, z])
+
+
+def _same_rotation(q1, q2) -> bool:
+    return np.allclose(coords.quat_to_rotmat(q1), coords.quat_to_rotmat(q2), atol=1e-9)
+
+
+def _compare_with_pycolmap(model: colmap.Model, path: Path) -> None:
+    pycolmap = pytest.importorskip("pycolmap")
+    rec = pycolmap.Reconstruction(str(path))
+    assert set(model.cameras) == set(rec.cameras)
+    for cam_id, cam in rec.cameras.items():
+        ours = model.cameras[cam_id]
+        assert ours.model == cam.model.name
+        assert (ours.width, ours.height) == (cam.width, cam.height)
+        np.testing.assert_allclose(ours.params, cam.params, rtol=0, atol=1e-12)
+    assert set(model.images) == set(rec.images)
+    for image_id, image in rec.images.items():
+        ours = model.images[image_id]
+        assert ours.name == image.name and ours.camera_id == image.camera_id
+        assert _same_rotation(ours.qvec, _pycolmap_quat_wxyz(image))
+        np.testing.assert_allclose(ours.tvec, image.cam_from_world().translation, atol=1e-9)
+        matrix = coords.colmap_camera_to_blender(ours.qvec, ours.tvec)
+        np.testing.assert_allclose(matrix[:3, 3], image.projection_center(), atol=1e-9)
+    ids = sorted(rec.points3D)
+    assert sorted(model.point_ids.tolist()) == ids
+    order = np.argsort(model.point_ids)
+    np.testing.assert_allclose(model.points[order], [rec.points3D[i].xyz for i in ids], atol=1e-12)
+    np.testing.assert_array_equal(model.colors[order], [rec.points3D[i].color for i in ids])
+
+
+def test_binary_model_matches_pycolmap(shared_data):
+    path = colmap.find_model_dir(shared_data / "tumbler")
+    model = colmap.read_model(path)
+    assert len(model.images) == 77 and len(model.points) == 9262
+    _compare_with_pycolmap(model, path)
+
+
+def test_text_model_matches_pycolmap(shared_data):
+    path = colmap.find_model_dir(shared_data / "fern")
+    model = colmap.read_model(path)
+    assert len(model.images) == 20 and model.cameras[1].model == "SIMPLE_RADIAL"
+    _compare_with_pycolmap(model, path)
+
+
+def test_text_and_binary_forms_agree(shared_data, tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    rec = pycolmap.Reconstruction(str(shared_data / "tumbler" / "sparse" / "0"))
+    rec.write_text(str(tmp_path))
+    text, binary = colmap.read_model(tmp_path), colmap.read_model(shared_data / "tumbler" / "sparse" / "0")
+    assert [im.name for im in text.sorted_images()] == [im.name for im in binary.sorted_images()]
+    np.testing.assert_allclose(text.points, binary.points, atol=1e-9)
+    _compare_with_pycolmap(text, tmp_path)
+
+
+def test_distortion_is_reported(shared_data):
+    model = colmap.read_model(colmap.find_model_dir(shared_data / "fern"))
+    note = model.cameras[1].distortion_note()
+    assert "SIMPLE_RADIAL" in note and "k=0.01975" in note
+    assert colmap.read_model(colmap.find_model_dir(shared_data / "tumbler")).cameras[1].distortion_note() == ""
+
+
+def test_bad_models_name_the_file(tmp_path):
+    with pytest.raises(colmap.ColmapError, match=str(tmp_path)):
+        colmap.find_model_dir(tmp_path)
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 100 100 50 50\n")
+    (tmp_path / "images.txt").write_text("")
+    with pytest.raises(colmap.ColmapError, match="cameras.txt.*expected 4"):
+        colmap.read_model(tmp_path)
+    (tmp_path / "cameras.txt").unlink()
+    (tmp_path / "cameras.bin").write_bytes(b"\x05\x00")
+    (tmp_path / "images.bin").write_bytes(b"\0" * 8)
+    with pytest.raises(colmap.ColmapError, match="cameras.bin: not a valid COLMAP file"):
+        colmap.read_model(tmp_path)
+
+
+def test_projection_through_blender_camera_settings(shared_data):
+    """Blender's view frame from the camera settings reproduces COLMAP's pixel."""
+    model = colmap.read_model(colmap.find_model_dir(shared_data / "tumbler"))
+    for image in model.sorted_images()[:5]:
+        cam = model.cameras[image.camera_id]
+        fx, fy, cx, cy = cam.pinhole()
+        s = coords.blender_camera_settings(cam.width, cam.height, fx, fy, cx, cy)
+        cam_matrix = coords.colmap_camera_to_blender(image.qvec, image.tvec)
+        for point in model.points[:50]:
+            local = np.linalg.inv(cam_matrix) @ np.append(point, 1.0)
+            # Blender: frame half-width 0.5 * sensor / lens at depth 1, shifted by shift * width
+            x, y, depth = local[0], local[1], -local[2]
+            scale = s["lens"] / s["sensor_width"]
+            u_frac = x / depth * scale + 0.5 - s["shift_x"]
+            v_frac = y / depth * scale + 0.5 * cam.height / cam.width - s["shift_y"]
+            uv = np.array([u_frac * cam.width, cam.height - v_frac * cam.width])
+            expected = coords.project_colmap(point, image.qvec, image.tvec, fx, fy, cx, cy)
+            np.testing.assert_allclose(uv, expected, atol=1e-6)
+
+
+def test_dataset_to_blender_puts_up_on_z():
+    rng = np.random.default_rng(1)
+    for up in [(0, -1, 0), (0, 0, -1), (0, 0, 1), *rng.normal(size=(5, 3))]:
+        m = coords.dataset_to_blender(up, center=(1, 2, 3))
+        rot = m[:3, :3]
+        np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rot) == pytest.approx(1.0)
+        np.testing.assert_allclose(rot @ (np.asarray(up) / np.linalg.norm(up)), [0, 0, 1], atol=1e-12)
+        np.testing.assert_allclose(m @ [1, 2, 3, 1], [0, 0, 0, 1], atol=1e-12)
+
+
+def test_estimate_up_of_upright_cameras():
+    # cameras whose COLMAP y (down) is world −Z: up must be +Z
+    q = coords.rotmat_to_quat(np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]))
+    np.testing.assert_allclose(coords.estimate_up([q, q]), [0, 0, 1], atol=1e-12)
+
+
+def test_prompt_box_from_cube_matrix():
+    rot = coords.quat_to_rotmat([0.9, 0.1, -0.3, 0.2])
+    m = np.eye(4)
+    m[:3, :3] = rot @ np.diag([0.5, 1.0, 2.0])
+    m[:3, 3] = [1.0, -2.0, 3.0]
+    box = coords.prompt_box(m, display_size=1.0)
+    np.testing.assert_allclose(box["center"], [1, -2, 3])
+    np.testing.assert_allclose(box["size"], [1.0, 2.0, 4.0])  # display size 1 = half edge 1
+    assert _same_rotation(box["rotation_wxyz"], coords.rotmat_to_quat(rot))
+    np.testing.assert_allclose(coords.prompt_box(m, display_size=0.25)["size"], [0.25, 0.5, 1.0])
+    mirrored = m.copy()
+    mirrored[:3, 2] *= -1
+    assert coords.prompt_box(mirrored)["size"] == pytest.approx([1.0, 2.0, 4.0])
+
+
+def _write_3dgs_ply(path: Path, n: int, rng) -> dict:
+    plyfile = pytest.importorskip("plyfile")
+    names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+             + [f"f_rest_{i}" for i in range(45)] + ["opacity", "scale_0", "scale_1", "scale_2",
+                                                     "rot_0", "rot_1", "rot_2", "rot_3"])
+    values = {name: rng.normal(size=n).astype(np.float32) for name in names}
+    table = np.empty(n, [(name, "f4") for name in names])
+    for name in names:
+        table[name] = values[name]
+    plyfile.PlyData([plyfile.PlyElement.describe(table, "vertex")]).write(str(path))
+    return values
+
+
+def test_ply_reader_matches_3dgs_layout(tmp_path):
+    rng = np.random.default_rng(0)
+    v = _write_3dgs_ply(tmp_path / "point_cloud.ply", 1000, rng)
+    g = plyio.read_gaussians(tmp_path / "point_cloud.ply")
+    np.testing.assert_allclose(g["means"], np.stack([v["x"], v["y"], v["z"]], 1))
+    np.testing.assert_allclose(g["opacity"], 1 / (1 + np.exp(-v["opacity"])), rtol=1e-6)
+    np.testing.assert_allclose(g["scale"], np.exp(np.stack([v[f"scale_{i}"] for i in range(3)], 1)), rtol=1e-6)
+    rot = np.stack([v[f"rot_{i}"] for i in range(4)], 1)
+    np.testing.assert_allclose(g["rotation"], rot / np.linalg.norm(rot, axis=1, keepdims=True), rtol=1e-5)
+    dc = np.stack([v[f"f_dc_{i}"] for i in range(3)], 1)
+    np.testing.assert_allclose(g["color"], np.clip(0.5 + plyio.SH_C0 * dc, 0, 1), atol=1e-6)
+
+
+def test_ply_reader_plain_point_cloud_and_errors(tmp_path):
+    (tmp_path / "a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\n"
+                                    "property float y\nproperty float z\nproperty uchar red\n"
+                                    "property uchar green\nproperty uchar blue\nend_header\n"
+                                    "0 0 0 255 0 0\n1 2 3 0 255 0\n")
+    g = plyio.read_gaussians(tmp_path / "a.ply")
+    np.testing.assert_allclose(g["means"][1], [1, 2, 3])
+    np.testing.assert_allclose(g["color"], [[1, 0, 0], [0, 1, 0]])
+    (tmp_path / "b.ply").write_bytes(b"not a ply")
+    with pytest.raises(plyio.PlyError, match="b.ply: not a PLY"):
+        plyio.read_gaussians(tmp_path / "b.ply")
+    header = b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    (tmp_path / "c.ply").write_bytes(header + b"\0" * 20)
+    with pytest.raises(plyio.PlyError, match="c.ply: truncated"):
+        plyio.read_gaussians(tmp_path / "c.ply")
+
+
+# --- trainer process -------------------------------------------------------------------
+
+def _state():
+    return SimpleNamespace(status="STARTING", message="", error_lines="", last_output="", log_path="",
+                           last_snapshot="", result_ply="", backend="", snapshot_step=0, step=0,
+                           iterations=0, n_gaussians=0, loss=0.0, psnr=0.0, elapsed_s=0.0, eta_s=0.0,
+                           progress=0.0, cancel_requested=False)
+
+
+def _fake_argv(tmp_path: Path, iterations: int = 30) -> list[str]:
+    job = tmp_path / "job.json"
+    job.write_text(json.dumps({"iterations": iterations, "strategy": "promptgs"}))
+    return [sys.executable, str(FAKE_TRAINER), "train", "DATASET", "--out", str(tmp_path), "--events",
+            "--job", str(job)]
+
+
+def _run_to_end(run: trainer.TrainerRun, state, timeout: float = 30.0) -> list[dict]:
+    events, deadline = [], time.time() + timeout
+    while time.time() < deadline:
+        batch = run.drain()
+        for event in batch:
+            trainer.reduce_event(state, event)
+        events += batch
+        if run.finished and run.events.empty():
+            return events
+        time.sleep(0.02)
+    raise AssertionError("the trainer did not finish")
+
+
+def test_reader_thread_follows_recorded_events(tmp_path, monkeypatch):
+    monkeypatch.setenv("FAKE_TRAINER_MODE", "ok")
+    run = trainer.TrainerRun(_fake_argv(tmp_path), tmp_path / "stderr.log")
+    run.start()
+    state = _state()
+    events = _run_to_end(run, state)
+    kinds = [e["event"] for e in events]
+    assert kinds[0] == "output" and kinds[1] == "start" and kinds[-2:] == ["done", "exit"]
+    assert kinds.count("progress") == 30 and kinds.count("snapshot") == 3
+    assert state.status == "DONE" and state.step == 30 and state.progress == 1.0
+    assert state.n_gaussians == 400 and state.psnr == 40.0 and state.snapshot_step == 30
+    assert Path(state.last_snapshot).is_file()
+    assert state.last_output == "fake trainer: not an event line"
+
+
+def test_crashed_trainer_shows_its_last_lines(tmp_path, monkeypatch):
+    monkeypatch.setenv("FAKE_TRAINER_MODE", "crash")
+    run = trainer.TrainerRun(_fake_argv(tmp_path), tmp_path / "stderr.log")
+    run.start()
+    state = _state()
+    _run_to_end(run, state)
+    assert state.status == "ERROR"
+    assert state.message == "RuntimeError: the fake trainer crashed"
+    assert "Traceback" in state.error_lines
+
+
+def test_cancel_stops_the_process_and_keeps_snapshots(tmp_path, monkeypatch):
+    monkeypatch.setenv("FAKE_TRAINER_MODE", "slow")
+    run = trainer.TrainerRun(_fake_argv(tmp_path), tmp_path / "stderr.log")
+    run.start()
+    state = _state()
+    deadline = time.time() + 30
+    while not state.last_snapshot and time.time() < deadline:
+        for event in run.drain():
+            trainer.reduce_event(state, event)
+        time.sleep(0.02)
+    assert state.last_snapshot
+    state.cancel_requested = True
+    state.status = "CANCELLING"
+    run.cancel(timeout=10)
+    _run_to_end(run, state)
+    assert state.status == "CANCELLED" and "kept the snapshot" in state.message
+    assert (tmp_path / "cancelled").is_file()  # stopped by SIGINT, not killed
+    assert Path(state.last_snapshot).is_file() and not run.running
+
+
+def test_wrong_trainer_path_is_a_clear_error(tmp_path):
+    run = trainer.TrainerRun(["/no/such/python", "-m", "promptgs_engine", "train"], tmp_path / "log")
+    with pytest.raises(trainer.TrainerError, match="Trainer command not found: /no/such/python"):
+        run.start()
+    assert "not an executable" in trainer.check_python(str(tmp_path))
+    assert "error" in trainer.probe("/no/such/python")
+
+
+def test_pure_modules_never_import_torch_or_the_engine():
+    code = textwrap.dedent(f"""
+        import sys
+        class Block:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in ("torch", "promptgs_engine", "pycolmap", "plyfile"):
+                    raise ImportError("blocked: " + name)
+        sys.meta_path.insert(0, Block())
+        sys.path.insert(0, {str(REPO)!r})
+        import promptgs_blender, promptgs_blender.colmap, promptgs_blender.coords
+        import promptgs_blender.plyio, promptgs_blender.trainer
+        assert "bpy" not in sys.modules
+        print("ok")
+    """)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.stdout.strip() == "ok", done.stderr
