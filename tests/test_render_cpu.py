@@ -1,0 +1,313 @@
+"""The C++ CPU rasterizer behind render(): parity with the torch reference (images and every
+gradient), finite differences, absgrad, culling, and the info contract gsplat's strategies read."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from promptgs_engine.render import RenderBackendError, render, resolve_backend
+from promptgs_engine.render.cpu import rasterize_cpu
+from promptgs_engine.render.projection import project_gaussians
+from promptgs_engine.render.reference import render_reference
+
+W, H = 61, 45  # not multiples of the 16-pixel tile
+
+
+def make_scene(n: int, seed: int, spread: float = 0.7, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=dtype) * spread + torch.tensor([0.0, 0.0, 3.0], dtype=dtype)
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    scales = torch.rand(n, 3, generator=g, dtype=dtype) * 0.15 + 0.02
+    opacities = torch.rand(n, generator=g, dtype=dtype) * 0.9 + 0.05
+    return means, quats, scales, opacities
+
+
+def cameras(c: int, dtype=torch.float64):
+    Ks = torch.tensor([[55.0, 0.0, W / 2 + 1.3], [0.0, 57.0, H / 2 - 0.7], [0.0, 0.0, 1.0]], dtype=dtype)
+    Ks = Ks[None].repeat(c, 1, 1)
+    viewmats = torch.eye(4, dtype=dtype)[None].repeat(c, 1, 1)
+    for i in range(1, c):  # further cameras: small rotation about y and a shift
+        a = 0.15 * i
+        R = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=dtype)
+        R[0, 0], R[0, 2], R[2, 0], R[2, 2] = torch.cos(torch.tensor(a)), torch.sin(torch.tensor(a)), -torch.sin(torch.tensor(a)), torch.cos(torch.tensor(a))
+        viewmats[i, :3, :3] = R
+        viewmats[i, :3, 3] = torch.tensor([0.1 * i, -0.05 * i, 0.2 * i], dtype=dtype)
+    return viewmats, Ks
+
+
+def run_both(n, seed, colors64, sh_degree=None, bg=True, mode="RGB", n_cams=1):
+    """Render with the C++ backend (float32) and the reference (float64); backprop the same
+    random linear loss through both; return outputs and gradients."""
+    scene = make_scene(n, seed)
+    viewmats, Ks = cameras(n_cams)
+    D = 3 if sh_degree is not None else colors64.shape[-1]
+    g = torch.Generator().manual_seed(seed + 1)
+    backgrounds = torch.rand(n_cams, D, generator=g, dtype=torch.float64) if bg else None
+    results = []
+    weights = None
+    for dtype, fn in ((torch.float32, render), (torch.float64, render_reference)):
+        params = [t.detach().clone().to(dtype).requires_grad_() for t in (*scene, colors64)]
+        kw = dict(sh_degree=sh_degree, render_mode=mode)
+        kw["backgrounds"] = None if backgrounds is None else backgrounds.to(dtype)
+        if fn is render:
+            kw["backend"] = "cpu"
+        out, alpha, info = fn(*params, viewmats.to(dtype), Ks.to(dtype), W, H, **kw)
+        info["means2d"].retain_grad()
+        if weights is None:
+            weights = (torch.randn(out.shape, generator=g, dtype=torch.float64),
+                       torch.randn(alpha.shape, generator=g, dtype=torch.float64))
+        loss = (out * weights[0].to(dtype)).sum() + (alpha * weights[1].to(dtype)).sum()
+        loss.backward()
+        grads = [p.grad.double() for p in params] + [info["means2d"].grad.double()]
+        results.append((out.detach().double(), alpha.detach().double(), grads, info))
+    return results
+
+
+GRAD_NAMES = ["means", "quats", "scales", "opacities", "colors", "means2d"]
+
+
+def assert_close_grads(cpu, ref, rtol=2e-4):
+    for name, a, b in zip(GRAD_NAMES, cpu[2], ref[2]):
+        scale = b.abs().max().item()
+        assert scale > 0, f"{name}: reference gradient is all zero, the scene tests nothing"
+        err = (a - b).abs().max().item()
+        assert err <= rtol * scale + 1e-6, f"{name}: max |cpu - reference| = {err:.3g} (scale {scale:.3g})"
+
+
+@pytest.mark.parametrize("D", [1, 3, 4, 7])
+@pytest.mark.parametrize("mode", ["RGB", "RGB+ED"])
+def test_cpu_matches_reference_features(D, mode):
+    n = 250
+    colors = torch.rand(n, D, generator=torch.Generator().manual_seed(D), dtype=torch.float64)
+    cpu, ref = run_both(n, seed=10 + D, colors64=colors, mode=mode)
+    assert cpu[0].shape == (1, H, W, D + (mode == "RGB+ED"))
+    assert cpu[1].shape == (1, H, W, 1)
+    assert (cpu[0] - ref[0]).abs().max().item() < 2e-5 * max(1.0, ref[0].abs().max().item())
+    assert (cpu[1] - ref[1]).abs().max().item() < 2e-6
+    assert ref[1].max() > 0.9 and ref[1].min() < 0.5  # overlapping and sparse regions both present
+    assert torch.equal(cpu[3]["radii"], ref[3]["radii"])
+    assert_close_grads(cpu, ref, rtol=5e-4 if mode == "RGB+ED" else 2e-4)
+
+
+@pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
+def test_cpu_matches_reference_sh_two_cameras(sh_degree):
+    n = 150
+    K = (sh_degree + 1) ** 2 + 1  # more coefficients than the degree uses
+    colors = torch.randn(n, K, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 0.3
+    cpu, ref = run_both(n, seed=20 + sh_degree, colors64=colors, sh_degree=sh_degree, n_cams=2)
+    assert cpu[0].shape == (2, H, W, 3)
+    assert (cpu[0] - ref[0]).abs().max().item() < 2e-5
+    assert_close_grads(cpu, ref)
+    # coefficients above the degree get no gradient
+    assert cpu[2][4][:, (sh_degree + 1) ** 2 :].abs().max() == 0
+
+
+def test_no_background_and_dense_opaque_scene():
+    """Many opaque overlapping Gaussians: exercises early termination (T < 1e-4) and the 0.999 clamp."""
+    n = 300
+    scene = make_scene(n, seed=5, spread=0.25)
+    colors = torch.rand(n, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    viewmats, Ks = cameras(1)
+    outs = []
+    for dtype, fn in ((torch.float32, render), (torch.float64, render_reference)):
+        m, q, s, _ = [t.detach().clone().to(dtype) for t in scene]
+        o = torch.full((n,), 0.995, dtype=dtype)
+        params = [t.requires_grad_() for t in (m, q, s * 2, o, colors.to(dtype))]
+        out, alpha, info = fn(*params, viewmats.to(dtype), Ks.to(dtype), W, H)
+        (out.square().sum() + alpha.sum()).backward()
+        outs.append((out.detach().double(), alpha.detach().double(), [p.grad.double() for p in params]))
+    assert (outs[1][1] > 1 - 1e-3).sum() > 100  # saturated pixels exist
+    assert (outs[0][0] - outs[1][0]).abs().max() < 2e-5
+    for a, b in zip(outs[0][2], outs[1][2]):
+        assert (a - b).abs().max() <= 5e-4 * b.abs().max() + 1e-6
+
+
+def test_rasterizer_finite_differences_float32():
+    """Central differences of the C++ forward against its backward, on an 8×8 image where no
+    pixel crosses the 1/255 cut-off or the termination threshold (so the loss is smooth)."""
+    g = torch.Generator().manual_seed(0)
+    n, D, S = 4, 3, 8
+    means2d = (torch.rand(1, n, 2, generator=g) * 4 + 2).double()
+    conics = torch.tensor([[0.02, 0.005, 0.03]]).repeat(n, 1)[None].double() * (1 + torch.rand(1, n, 1, generator=g).double())
+    colors = torch.rand(1, n, D, generator=g).double()
+    opac = (torch.rand(n, generator=g) * 0.5 + 0.2).double()
+    depths = torch.arange(n, dtype=torch.float32)[None] + 1
+    radii = torch.full((1, n, 2), 40, dtype=torch.int32)
+    bg = torch.rand(1, D, generator=g)
+    w_img = torch.randn(1, S, S, D, generator=g).double()
+    w_a = torch.randn(1, S, S, 1, generator=g).double()
+
+    def loss(m, c, col, o):
+        img, a = rasterize_cpu(m.float(), c.float(), col.float(), o.float(), depths, radii, S, S, bg)
+        return (img.double() * w_img).sum() + (a.double() * w_a).sum()
+
+    inputs = [t.clone().requires_grad_() for t in (means2d, conics, colors, opac)]
+    loss(*inputs).backward()
+    eps = [1e-2, 1e-4, 1e-2, 1e-2]
+    for k, (x, h) in enumerate(zip(inputs, eps)):
+        fd = torch.zeros_like(x)
+        flat = fd.view(-1)
+        for j in range(x.numel()):
+            plus = [t.detach().clone() for t in inputs]
+            minus = [t.detach().clone() for t in inputs]
+            plus[k].view(-1)[j] += h
+            minus[k].view(-1)[j] -= h
+            flat[j] = (loss(*plus) - loss(*minus)) / (2 * h)
+        err = (fd - x.grad).abs().max().item()
+        assert err <= 2e-2 * x.grad.abs().max().item() + 1e-3, f"input {k}: fd vs analytic max err {err:.3g}"
+
+
+def test_reference_gradcheck_float64():
+    """The reference's autograd gradients (ground truth for the parity tests) pass gradcheck."""
+    scene = make_scene(6, seed=1, spread=0.3)
+    colors = torch.rand(6, 2, dtype=torch.float64)
+    viewmats, Ks = cameras(1)
+    S = 12
+    Ks = Ks.clone()
+    Ks[0, 0, 2], Ks[0, 1, 2], Ks[0, 0, 0], Ks[0, 1, 1] = S / 2, S / 2, 10.0, 10.0
+    params = [t.clone().requires_grad_() for t in (*scene, colors)]
+
+    def f(*p):
+        out, alpha, _ = render_reference(*p, viewmats, Ks, S, S)
+        return out.sum() + 0.3 * alpha.square().sum()
+
+    assert torch.autograd.gradcheck(f, params, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_absgrad_bounds_and_single_pixel():
+    scene = [t.float() for t in make_scene(120, seed=7)]
+    colors = torch.rand(120, 3)
+    viewmats, Ks = cameras(1, torch.float32)
+    params = [t.clone().requires_grad_() for t in (*scene, colors)]
+    out, alpha, info = render(*params, viewmats, Ks, W, H, absgrad=True, backend="cpu")
+    info["means2d"].retain_grad()
+    (out * torch.randn_like(out)).sum().backward()
+    m2 = info["means2d"]
+    assert m2.absgrad.shape == m2.shape
+    assert (m2.absgrad >= m2.grad.abs() - 1e-6).all()
+    assert (m2.absgrad > m2.grad.abs() + 1e-4).any()  # sums of |.| over pixels differ from |sum|
+
+    # one pixel: the absolute gradient is exactly |grad|
+    Ks1 = torch.tensor([[[20.0, 0.0, 0.5], [0.0, 20.0, 0.5], [0.0, 0.0, 1.0]]])
+    p1 = [t.clone().requires_grad_() for t in (*scene, colors)]
+    out1, _, info1 = render(*p1, viewmats, Ks1, 1, 1, absgrad=True, backend="cpu")
+    info1["means2d"].retain_grad()
+    out1.sum().backward()
+    g1 = info1["means2d"]
+    assert (g1.grad.abs() > 0).any()
+    torch.testing.assert_close(g1.absgrad, g1.grad.abs(), rtol=0, atol=1e-7)
+
+
+def test_culling_behind_outside_and_transparent():
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, -2.0], [50.0, 0.0, 2.0], [0.1, 0.1, 2.5], [0.0, 0.0, 0.005]])
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(5, 1)
+    scales = torch.full((5, 3), 0.1)
+    opac = torch.tensor([0.8, 0.8, 0.8, 0.001, 0.8])
+    colors = torch.rand(5, 3)
+    viewmats, Ks = cameras(1, torch.float32)
+    params = [t.clone().requires_grad_() for t in (means, quats, scales, opac, colors)]
+    out, alpha, info = render(*params, viewmats, Ks, W, H, backend="cpu")
+    radii = info["radii"][0]
+    assert radii.dtype == torch.int32 and radii.shape == (5, 2)
+    assert (radii[0] > 0).all()
+    for i in (1, 2, 3, 4):  # behind, outside the frustum, below 1/255 opacity, before the near plane
+        assert (radii[i] == 0).all(), i
+    info["means2d"].retain_grad()
+    out.sum().backward()
+    for p in params:
+        assert torch.isfinite(p.grad).all()
+    assert (params[0].grad[1:] == 0).all() and (params[4].grad[1:] == 0).all()
+    assert (params[0].grad[0] != 0).any()
+    assert info["depths"][0, 1].item() == pytest.approx(-2.0)
+
+
+def test_projection_matches_gsplat_torch_implementation():
+    from gsplat.cuda._torch_impl import _fully_fused_projection, _quat_scale_to_covar_preci
+
+    means, quats, scales, opac = make_scene(200, seed=3)
+    viewmats, Ks = cameras(2)
+    m2, conics, depths, radii = project_gaussians(means, quats, scales, opac, viewmats, Ks, W, H)
+    covars, _ = _quat_scale_to_covar_preci(quats, scales, compute_preci=False, triu=False)
+    g_radii, g_m2, g_depths, g_conics, _ = _fully_fused_projection(means, covars, viewmats, Ks, W, H)
+    torch.testing.assert_close(m2, g_m2)
+    torch.testing.assert_close(conics, g_conics)
+    torch.testing.assert_close(depths, g_depths)
+    # our boxes are the opacity-aware ones (never larger than gsplat's 3.33 sigma)
+    vis = (radii > 0).all(-1)
+    assert vis.sum() > 100
+    assert (radii[vis] <= g_radii[vis]).all()
+
+
+def test_sh_matches_gsplat_torch_implementation():
+    from gsplat.cuda._torch_impl import _spherical_harmonics
+
+    from promptgs_engine.render.sh import eval_sh
+
+    g = torch.Generator().manual_seed(0)
+    dirs = torch.randn(100, 3, generator=g, dtype=torch.float64)
+    coeffs = torch.randn(100, 16, 3, generator=g, dtype=torch.float64)
+    for d in range(4):
+        torch.testing.assert_close(eval_sh(d, dirs, coeffs), _spherical_harmonics(d, dirs, coeffs))
+
+
+def test_info_drives_gsplat_default_strategy():
+    from gsplat.strategy import DefaultStrategy
+
+    n = 80
+    means, quats, scales, opac = [t.float() for t in make_scene(n, seed=9)]
+    params = torch.nn.ParameterDict(
+        {
+            "means": means,
+            "quats": quats,
+            "scales": scales.log(),
+            "opacities": torch.logit(opac),
+            "sh0": torch.rand(n, 1, 3),
+            "shN": torch.zeros(n, 15, 3),
+        }
+    )
+    optimizers = {k: torch.optim.Adam([v], lr=1e-3) for k, v in params.items()}
+    viewmats, Ks = cameras(2, torch.float32)
+    for absgrad in (False, True):
+        strategy = DefaultStrategy(absgrad=absgrad, refine_start_iter=10_000)
+        strategy.check_sanity(params, optimizers)
+        state = strategy.initialize_state()
+        for step in range(2):
+            colors = torch.cat([params["sh0"], params["shN"]], dim=1)
+            out, alpha, info = render(
+                params["means"], params["quats"], params["scales"].exp(), params["opacities"].sigmoid(),
+                colors, viewmats, Ks, W, H, sh_degree=3, absgrad=absgrad, backend="cpu",
+            )
+            assert set(["means2d", "radii", "depths", "width", "height", "n_cameras", "gaussian_ids", "backend"]) <= set(info)
+            assert info["means2d"].shape == (2, n, 2) and info["radii"].shape == (2, n, 2)
+            assert info["radii"].dtype == torch.int32 and info["gaussian_ids"] is None
+            assert info["n_cameras"] == 2 and info["backend"] == "cpu"
+            strategy.step_pre_backward(params, optimizers, state, step, info)
+            out.mean().backward()
+            strategy.step_post_backward(params, optimizers, state, step, info, packed=False)
+        visible = (info["radii"] > 0).all(-1).sum(0)
+        assert torch.equal(state["count"], 2 * visible.float())
+        assert (state["grad2d"][visible > 0] > 0).all()
+
+
+def test_empty_and_fully_culled_scenes():
+    viewmats, Ks = cameras(1, torch.float32)
+    bg = torch.tensor([[0.2, 0.4, 0.6]])
+    for n in (0, 3):
+        means = torch.zeros(n, 3) - torch.tensor([0.0, 0.0, 5.0])  # all behind the camera
+        params = [t.requires_grad_() for t in (means, torch.randn(n, 4), torch.ones(n, 3) * 0.1, torch.ones(n) * 0.5, torch.rand(n, 3))]
+        out, alpha, info = render(*params, viewmats, Ks, W, H, backgrounds=bg, backend="cpu")
+        assert torch.allclose(out, bg.view(1, 1, 1, 3).expand_as(out))
+        assert (alpha == 0).all()
+        out.sum().backward()
+
+
+def test_backend_selection_errors():
+    assert resolve_backend("auto", torch.device("cpu")) == "cpu"
+    with pytest.raises(ValueError):
+        resolve_backend("opengl", torch.device("cpu"))
+    if not torch.cuda.is_available():
+        with pytest.raises(RenderBackendError, match="CUDA"):
+            resolve_backend("cuda", torch.device("cpu"))
+    with pytest.raises(ValueError, match="render_mode"):
+        render(*[torch.zeros(1, k) for k in (3, 4, 3)], torch.zeros(1), torch.zeros(1, 3), *cameras(1, torch.float32), W, H, render_mode="D")
