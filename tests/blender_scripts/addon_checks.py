@@ -1,0 +1,298 @@
+"""Checks of the installed extension with recorded/fake trainers (see test_blender_addon.py)."""
+
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(__file__))
+from harness import addon, bpy, check, config, forbidden_modules, blocked_attempts, install, run_until_idle  # noqa: E402
+
+import numpy as np  # noqa: E402
+from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
+from mathutils import Euler, Matrix, Vector  # noqa: E402
+
+TMP = Path(config["tmp"])
+scene = lambda: bpy.context.scene  # noqa: E731
+state = lambda: bpy.context.window_manager.promptgs_run  # noqa: E731
+
+
+@check
+def installed_and_enabled():
+    info = install()
+    assert hasattr(bpy.types.Scene, "promptgs") and hasattr(bpy.ops.promptgs, "train")
+    return info
+
+
+def prefs():
+    return bpy.context.preferences.addons["bl_ext.user_default.promptgs"].preferences
+
+
+prefs().output_dir = str(TMP / "runs")
+
+
+@check
+def import_tumbler():
+    bpy.ops.promptgs.import_colmap(directory=config["tumbler"], images="images_4")
+    root = scene().promptgs.root
+    cams = [o for o in root.children if o.type == "CAMERA"]
+    points = bpy.data.objects["PromptGS Sparse Points tumbler"]
+    assert len(cams) == 77, len(cams)
+    assert len(points.data.vertices) == 9262
+    assert {"color", "error"} <= set(points.data.attributes.keys())
+    assert scene().promptgs.distortion == ""
+    return {"cameras": len(cams)}
+
+
+@check
+def projection_matches_colmap():
+    root = scene().promptgs.root
+    errors = []
+    for item in config["projections"]:
+        cam = bpy.data.objects[item["image"]]
+        bpy.ops.promptgs.use_camera(name=cam.name)
+        width, height = scene().render.resolution_x, scene().render.resolution_y
+        assert (width, height) == (cam.data["promptgs_width"], cam.data["promptgs_height"])
+        ndc = world_to_camera_view(scene(), cam, root.matrix_world @ Vector(item["point"]))
+        uv = np.array([ndc.x * width, (1.0 - ndc.y) * height])
+        errors.append(float(np.abs(uv - np.array(item["uv"])).max()))
+    assert max(errors) < 0.5, max(errors)
+    return {"max_error_px": max(errors), "n": len(errors)}
+
+
+@check
+def root_puts_capture_upright():
+    root = scene().promptgs.root
+    ups = []
+    for cam in [o for o in root.children if o.type == "CAMERA"]:
+        ups.append(tuple(cam.matrix_world.to_3x3() @ Vector((0, 1, 0))))  # Blender camera up
+    mean_up = np.mean(ups, axis=0)
+    assert mean_up[2] > 0.5, mean_up
+    return {"mean_camera_up": mean_up.tolist()}
+
+
+@check
+def import_fern_reports_distortion():
+    before = set(bpy.data.objects.keys())
+    bpy.ops.promptgs.import_colmap(directory=config["fern"])
+    note = scene().promptgs.distortion
+    assert "SIMPLE_RADIAL" in note and "k=0.01975" in note, note
+    new = set(bpy.data.objects.keys()) - before
+    assert len([n for n in new if bpy.data.objects[n].type == "CAMERA"]) == 20
+    # back to tumbler for the rest
+    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
+    scene().promptgs.images = "images_4"
+    return {"note": note}
+
+
+def pytest_approx(values, tol=1e-6):
+    class Approx:
+        def __eq__(self, other):
+            return all(abs(a - b) <= tol for a, b in zip(other, values)) and len(other) == len(values)
+    return Approx()
+
+
+def fake_trainer(mode: str) -> None:
+    os.environ["FAKE_TRAINER_MODE"] = mode
+    prefs().python = config["fake_python"]
+
+
+@check
+def prompt_cube_box_in_job_file():
+    root = scene().promptgs.root
+    scene().cursor.location = (0.1, 0.2, 0.3)
+    bpy.ops.promptgs.add_prompt()
+    cube = bpy.context.active_object
+    assert cube.empty_display_type == "CUBE" and cube.users_collection[0].name == "PromptGS Prompts"
+    assert tuple(cube.location) == pytest_approx((0.1, 0.2, 0.3))
+    # move, rotate, scale it, change its size and weight
+    cube.location = (0.3, -0.2, 0.5)
+    cube.rotation_euler = Euler((0.3, -0.5, 1.1))
+    cube.scale = (0.2, 0.3, 0.4)
+    cube.empty_display_size = 0.5
+    cube.promptgs_weight = 2.5
+    bpy.ops.promptgs.add_prompt()
+    off = bpy.context.active_object
+    off.promptgs_enabled = False
+    bpy.context.view_layer.update()
+    fake_trainer("ok")
+    os.environ["FAKE_TRAINER_MODE"] = "crash"  # only the job file matters here
+    bpy.ops.promptgs.train()
+    run_until_idle(60)
+    job = json.loads(Path(state().job_path).read_text())
+    assert len(job["prompts"]["prompts"]) == 1
+    box = job["prompts"]["prompts"][0]
+    assert box["weight"] == 2.5
+    # the box's corners, taken back to Blender with the root, are the cube's drawn corners
+    rot = Matrix(np.array(addon("coords").quat_to_rotmat(box["rotation_wxyz"])).tolist()).to_4x4()
+    box_matrix = Matrix.Translation(box["center"]) @ rot
+    worst = 0.0
+    for corner in [(x, y, z) for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]:
+        drawn = cube.matrix_world @ (Vector(corner) * cube.empty_display_size)
+        local = Vector([c * s / 2.0 for c, s in zip(corner, box["size"])])
+        sent = root.matrix_world @ box_matrix @ local
+        worst = max(worst, (drawn - sent).length)
+    assert worst < 1e-5, worst
+    assert box["size"] == pytest_approx([0.2, 0.3, 0.4])  # 2 × display size 0.5 × scale
+    for key in ("dataset", "out", "images", "iterations", "strategy", "backend", "snapshot_every", "seed"):
+        assert key in job, key
+    assert job["images"] == "images_4" and Path(job["dataset"]).name == "tumbler"
+    bpy.data.objects.remove(off)
+    return {"box": box, "corner_error": worst}
+
+
+@check
+def train_with_recorded_events_updates_objects():
+    fake_trainer("ok")
+    scene().promptgs.preset = "CUSTOM"
+    scene().promptgs.iterations = 30
+    bpy.ops.promptgs.train()
+    training = addon("training")
+    seen = {}
+
+    def first_snapshot():
+        obj = bpy.data.objects.get("PromptGS Gaussians")
+        if obj is not None and "pointer" not in seen:
+            seen["pointer"] = (obj.as_pointer(), obj.data.as_pointer())
+            seen["count"] = len(obj.data.vertices)
+        return False
+
+    # drain one batch at a time so the snapshots arrive separately
+    deadline = time.time() + 60
+    while training.drain_and_apply(bpy.context) and time.time() < deadline:
+        first_snapshot()
+        time.sleep(0.001)
+    st = state()
+    assert st.status == "DONE", (st.status, st.message)
+    obj = bpy.data.objects["PromptGS Gaussians"]
+    assert (obj.as_pointer(), obj.data.as_pointer()) == seen["pointer"], "the object was re-created"
+    with np.load(st.last_snapshot) as npz:
+        data = dict(npz)
+    display = addon("display")
+    n = len(data["means"])
+    assert len(obj.data.vertices) == n == st.n_gaussians == 400
+    np.testing.assert_allclose(display.get_attribute(obj, "position"), data["means"], atol=1e-6)
+    for key in ("opacity", "scale", "rotation", "score", "error"):
+        np.testing.assert_allclose(display.get_attribute(obj, key), data[key], atol=1e-6, err_msg=key)
+    np.testing.assert_allclose(display.get_attribute(obj, "color")[:, :3], data["color"], atol=1e-6)
+    assert obj.parent == scene().promptgs.root
+    field = bpy.data.objects["PromptGS Loss Field"]
+    assert len(field.data.vertices) == 64
+    np.testing.assert_allclose(display.get_attribute(field, "loss"), data["field_loss"], atol=1e-6)
+    np.testing.assert_allclose(display.get_attribute(field, "attention"), data["field_attention"], atol=1e-6)
+    bins = display.get_attribute(obj, "display_bin")
+    assert bins.min() >= 0 and bins.max() == display.N_BINS - 1  # coloured by error
+    return {"first_snapshot_count": seen["count"], "final_count": n}
+
+
+@check
+def cancel_keeps_last_snapshot():
+    fake_trainer("slow")
+    bpy.ops.promptgs.train()
+    out = Path(state().out_dir)
+    training = addon("training")
+    deadline = time.time() + 60
+    while not state().last_snapshot and time.time() < deadline:
+        training.drain_and_apply(bpy.context)
+        time.sleep(0.05)
+    assert state().last_snapshot
+    bpy.ops.promptgs.cancel()
+    run_until_idle(60)
+    st = state()
+    assert st.status == "CANCELLED", (st.status, st.message)
+    assert (out / "cancelled").is_file(), "the trainer was not interrupted cleanly"
+    with np.load(st.last_snapshot) as npz:
+        n = len(npz["means"])
+    assert len(bpy.data.objects["PromptGS Gaussians"].data.vertices) == n
+    assert training.current_run() is None
+    return {"message": st.message}
+
+
+@check
+def crashed_trainer_shows_error_lines():
+    fake_trainer("crash")
+    bpy.ops.promptgs.train()
+    run_until_idle(60)
+    st = state()
+    assert st.status == "ERROR" and st.message == "RuntimeError: the fake trainer crashed", st.message
+    assert "Traceback" in st.error_lines and Path(st.log_path).is_file()
+    return {"message": st.message, "log": st.log_path}
+
+
+@check
+def wrong_trainer_path_is_a_clear_error():
+    prefs().python = "/no/such/python"
+    try:
+        bpy.ops.promptgs.train()
+        raise AssertionError("train did not fail")
+    except RuntimeError as exc:
+        reported = str(exc)
+    st = state()
+    assert st.status == "ERROR" and "Trainer command not found: /no/such/python" in st.message, st.message
+    return {"message": st.message, "reported": reported.strip()}
+
+
+@check
+def dataset_without_images_is_a_clear_error():
+    bare = TMP / "no_images"
+    shutil.copytree(Path(config["tumbler"]) / "sparse", bare / "sparse")
+    bpy.ops.promptgs.import_colmap(directory=str(bare))
+    fake_trainer("ok")
+    try:
+        bpy.ops.promptgs.train()
+        raise AssertionError("train did not fail")
+    except RuntimeError:
+        pass
+    st = state()
+    assert st.status == "ERROR" and "no such image folder" in st.message and "no_images" in st.message, st.message
+    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
+    return {"message": st.message}
+
+
+@check
+def load_result_reads_3dgs_ply():
+    rng = np.random.default_rng(3)
+    n = 500
+    names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
+             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    table = rng.normal(size=(n, len(names))).astype("<f4")
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % n
+    header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
+    path = TMP / "result.ply"
+    path.write_bytes(header.encode() + table.tobytes())
+    bpy.ops.promptgs.load_result(filepath=str(path))
+    obj = bpy.data.objects["PromptGS Gaussians"]
+    display = addon("display")
+    col = {name: table[:, i] for i, name in enumerate(names)}
+    assert len(obj.data.vertices) == n
+    np.testing.assert_allclose(display.get_attribute(obj, "position")[:, 0], col["x"], atol=1e-6)
+    np.testing.assert_allclose(display.get_attribute(obj, "opacity"), 1 / (1 + np.exp(-col["opacity"])), atol=1e-6)
+    return {"n": n}
+
+
+@check
+def million_points_update():
+    display = addon("display")
+    obj = bpy.data.objects["PromptGS Gaussians"]
+    n = 1_000_000
+    rng = np.random.default_rng(0)
+    data = {"means": rng.normal(size=(n, 3)).astype(np.float32),
+            "opacity": rng.uniform(size=n).astype(np.float32),
+            "scale": rng.uniform(size=(n, 3)).astype(np.float32),
+            "rotation": np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+            "color": rng.uniform(size=(n, 3)).astype(np.float32),
+            "score": rng.uniform(size=n).astype(np.float32), "error": rng.uniform(size=n).astype(np.float32)}
+    start = time.time()
+    addon("training").show_gaussians(bpy.context, data)
+    seconds = time.time() - start
+    assert len(obj.data.vertices) == n
+    return {"update_seconds_1M": round(seconds, 2)}
+
+
+@check
+def never_imports_torch_or_engine():
+    assert not blocked_attempts, blocked_attempts
+    assert not forbidden_modules(), forbidden_modules()
+    return {}

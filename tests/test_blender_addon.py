@@ -1,0 +1,83 @@
+"""The installed extension inside Blender (bpy module), with fake/recorded trainers.
+
+One bpy subprocess runs tests/blender_scripts/addon_checks.py; each test here reads one
+of its checks. HOME points at a temporary folder, so a fresh user profile is used.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("bpy", reason="needs the bpy module")  # find_spec only; no import here
+pytestmark = pytest.mark.blender
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPTS = REPO / "tests" / "blender_scripts"
+sys.path.insert(0, str(REPO / "tools"))
+
+
+def projections(tumbler: Path, n_cameras: int = 6, n_points: int = 5) -> list[dict]:
+    """Pixels of a few points in a few images, projected by pycolmap."""
+    pycolmap = pytest.importorskip("pycolmap")
+    rec = pycolmap.Reconstruction(str(tumbler / "sparse" / "0"))
+    out = []
+    images = sorted(rec.images.values(), key=lambda im: im.name)
+    for image in images[:: max(1, len(images) // n_cameras)][:n_cameras]:
+        count = 0
+        for point in rec.points3D.values():
+            uv = image.project_point(point.xyz)
+            if uv is None:
+                continue
+            uv = np.asarray(uv)
+            cam = rec.cameras[image.camera_id]
+            if 0 <= uv[0] < cam.width and 0 <= uv[1] < cam.height:
+                out.append({"image": image.name, "point": point.xyz.tolist(), "uv": uv.tolist()})
+                count += 1
+            if count == n_points:
+                break
+    return out
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory, shared_data):
+    import build_extension
+
+    tmp = tmp_path_factory.mktemp("blender_addon")
+    zip_path = build_extension.build(tmp / "dist")
+    fake = tmp / "fake_python"
+    fake.write_text(f"#!/bin/sh\nexec {sys.executable} {SCRIPTS / 'fake_trainer.py'} \"$@\"\n")
+    fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
+    config = {"zip": str(zip_path), "tmp": str(tmp), "tumbler": str(shared_data / "tumbler"),
+              "fern": str(shared_data / "fern"), "fake_python": str(fake),
+              "projections": projections(shared_data / "tumbler")}
+    (tmp / "config.json").write_text(json.dumps(config))
+    (tmp / "home").mkdir()
+    env = dict(os.environ, HOME=str(tmp / "home"), PYTHONNOUSERSITE="1")
+    done = subprocess.run([sys.executable, str(SCRIPTS / "addon_checks.py"), str(tmp / "config.json"),
+                           str(tmp / "results.json")], env=env, capture_output=True, text=True, timeout=600)
+    if not (tmp / "results.json").is_file():
+        pytest.fail(f"the Blender script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    return json.loads((tmp / "results.json").read_text())
+
+
+CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap", "root_puts_capture_upright",
+          "import_fern_reports_distortion", "prompt_cube_box_in_job_file",
+          "train_with_recorded_events_updates_objects", "cancel_keeps_last_snapshot",
+          "crashed_trainer_shows_error_lines", "wrong_trainer_path_is_a_clear_error",
+          "dataset_without_images_is_a_clear_error", "load_result_reads_3dgs_ply", "million_points_update",
+          "never_imports_torch_or_engine"]
+
+
+@pytest.mark.parametrize("name", CHECKS)
+def test_blender(results, name):
+    assert name in results, f"check {name} did not run"
+    outcome = results[name]
+    assert outcome["ok"], f"{outcome['error']}\n{outcome.get('traceback', '')}"
