@@ -269,6 +269,9 @@ def reduce_event(state, event: dict) -> None:
         shown = ", ".join(f"{k} {v:.3f}" for k, v in metrics.items() if isinstance(v, (int, float)))[:200]
         state.message = "Done" + (f": {shown}" if shown else "")
     elif kind == "error":
+        if state.cancel_requested or state.status == "CANCELLING":
+            state.last_output = str(event.get("message") or "")[:400]  # the trainer saw our SIGINT
+            return
         state.status = "ERROR"
         state.message = str(event.get("message") or "the trainer reported an error").splitlines()[0]
         state.log_path = str(event.get("log") or state.log_path)

@@ -64,6 +64,7 @@ def main(argv):
             time.sleep(0.05 if mode == "slow" else 0.001)
     except KeyboardInterrupt:
         (out / "cancelled").write_text(str(step))
+        emit(event="error", message="KeyboardInterrupt", step=step, log=str(out / "train.log"))
         sys.exit(130)
     emit(event="done", out=str(out), ply="", metrics={"psnr": 20.0})
 

@@ -1,0 +1,161 @@
+"""The installed extension driving the real trainer (see test_blender_train.py).
+
+Imports tumbler, adds a prompt, runs a short CPU training through ``python -m
+promptgs_engine train`` (a separate process: this one blocks torch imports), renders
+the scene with Workbench while training goes on, then cancels a second run mid-way.
+"""
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(__file__))
+from harness import addon, bpy, check, config, forbidden_modules, install, run_until_idle  # noqa: E402
+
+import bmesh  # noqa: E402
+import numpy as np  # noqa: E402
+from mathutils import Vector  # noqa: E402
+
+TMP = Path(config["tmp"])
+scene = lambda: bpy.context.scene  # noqa: E731
+state = lambda: bpy.context.window_manager.promptgs_run  # noqa: E731
+
+
+def prefs():
+    return bpy.context.preferences.addons["bl_ext.user_default.promptgs"].preferences
+
+
+@check
+def setup():
+    install()
+    for name in ("Cube", "Light", "Camera"):  # the startup file's objects
+        if name in bpy.data.objects:
+            bpy.data.objects.remove(bpy.data.objects[name])
+    prefs().python = config["python"]
+    prefs().output_dir = str(TMP / "runs")
+    bpy.ops.promptgs.test_trainer()
+    probe = prefs().probe_result
+    bpy.ops.promptgs.import_colmap(directory=config["tumbler"], images="images_4")
+    settings = scene().promptgs
+    root = settings.root
+    # a prompt around the middle of the sparse points
+    scene().cursor.location = root.matrix_world.translation
+    bpy.ops.promptgs.add_prompt()
+    cube = bpy.context.active_object
+    cube.scale = (0.35, 0.35, 0.5)
+    settings.preset = "CUSTOM"
+    settings.strategy = config["strategy"]
+    settings.backend = "cpu"
+    settings.color_by = "error"
+    settings.point_radius = settings.point_radius * 1.5
+    return {"probe": probe}
+
+
+def prompt_wire_meshes() -> list:
+    """Render-visible stand-ins for the prompt empties (empties are not rendered)."""
+    made = []
+    mat = bpy.data.materials.new("Prompt Wire")
+    mat.diffuse_color = (1.0, 0.1, 0.05, 1.0)
+    for obj in addon("prompts").prompt_objects(scene()):
+        mesh = bpy.data.meshes.new(obj.name + " wire")
+        bm = bmesh.new()
+        bmesh.ops.create_cube(bm, size=2.0 * obj.empty_display_size)
+        bm.to_mesh(mesh)
+        bm.free()
+        mesh.materials.append(mat)
+        wire = bpy.data.objects.new(mesh.name, mesh)
+        wire.matrix_world = obj.matrix_world
+        mod = wire.modifiers.new("wire", "WIREFRAME")
+        mod.thickness = 0.012
+        mod.use_relative_offset = False
+        scene().collection.objects.link(wire)
+        made.append(wire)
+    return made
+
+
+def render(path: str) -> float:
+    sc = scene()
+    importer = addon("importer")
+    cam = bpy.data.objects[config["render_camera"]]
+    importer.use_camera(sc, cam)
+    sc.render.resolution_percentage = 100
+    sc.render.engine = "BLENDER_WORKBENCH"
+    sc.display.shading.light = "STUDIO"
+    sc.display.shading.color_type = "MATERIAL"
+    sc.display.shading.show_cavity = False
+    if sc.world is None:
+        sc.world = bpy.data.worlds.new("World")
+    sc.world.color = (0.02, 0.02, 0.025)
+    for obj in bpy.data.objects:
+        if obj.name.startswith("PromptGS Sparse Points"):
+            obj.hide_render = True
+    wires = prompt_wire_meshes()
+    sc.render.filepath = path
+    start = time.time()
+    bpy.ops.render.render(write_still=True)
+    for wire in wires:
+        bpy.data.objects.remove(wire)
+    return time.time() - start
+
+
+@check
+def train_real_trainer():
+    settings = scene().promptgs
+    settings.iterations = config["iterations"]
+    settings.snapshot_every = config["snapshot_every"]
+    bpy.ops.promptgs.train()
+    info = {"out": state().out_dir}
+
+    def first_snapshot_render():
+        if "render_s" not in info and "PromptGS Gaussians" in bpy.data.objects:
+            info["render_s"] = render(config["image"])
+            info["render_step"] = state().snapshot_step
+        return False
+
+    run_until_idle(config["timeout"], on_events=first_snapshot_render)
+    st = state()
+    assert st.status == "DONE", (st.status, st.message, st.error_lines)
+    assert st.result_ply and Path(st.result_ply).is_file()
+    obj = bpy.data.objects["PromptGS Gaussians"]
+    display = addon("display")
+    arrays = {key: display.get_attribute(obj, key) for key in
+              ("position", "opacity", "scale", "rotation", "color", "score", "error")}
+    np.savez(TMP / "object_attributes.npz", **arrays)
+    info.update({"ply": st.result_ply, "n": len(obj.data.vertices), "status_message": st.message,
+                 "psnr": st.psnr, "step": st.step, "loss_field": "PromptGS Loss Field" in bpy.data.objects})
+    return info
+
+
+@check
+def cancel_real_trainer():
+    settings = scene().promptgs
+    settings.iterations = 5000
+    settings.snapshot_every = 5
+    bpy.ops.promptgs.train()
+    training = addon("training")
+    run = training.current_run()
+    deadline = time.time() + config["timeout"]
+    while state().snapshot_step == 0 and time.time() < deadline:
+        training.drain_and_apply(bpy.context)
+        time.sleep(0.1)
+    assert state().snapshot_step > 0, (state().status, state().message)
+    bpy.ops.promptgs.cancel()
+    run_until_idle(60)
+    st = state()
+    assert st.status == "CANCELLED", (st.status, st.message, st.error_lines)
+    assert not run.running and run.process.returncode != 0
+    with np.load(st.last_snapshot) as npz:
+        n = len(npz["means"])
+        means = npz["means"]
+    obj = bpy.data.objects["PromptGS Gaussians"]
+    assert len(obj.data.vertices) == n
+    np.testing.assert_allclose(addon("display").get_attribute(obj, "position"), means, atol=1e-6)
+    return {"message": st.message, "returncode": run.process.returncode, "snapshot_step": st.snapshot_step,
+            "last_output": st.last_output}
+
+
+@check
+def never_imports_torch_or_engine():
+    assert not forbidden_modules(), forbidden_modules()

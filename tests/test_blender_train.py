@@ -1,0 +1,94 @@
+"""The installed extension with the real trainer: a short CPU run and a cancel.
+
+Runs tests/blender_scripts/train_checks.py in one bpy subprocess (HOME in a temporary
+folder). The trainer is ``python -m promptgs_engine train`` with this interpreter. The
+run also renders docs/images/blender_training.png (Workbench, from a dataset camera)
+when PROMPTGS_UPDATE_DOCS_IMAGE=1, else into the test's temporary folder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("bpy", reason="needs the bpy module")
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPTS = REPO / "tests" / "blender_scripts"
+sys.path.insert(0, str(REPO / "tools"))
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, shared_data):
+    pytest.importorskip("promptgs_engine.train", reason="needs the trainer")
+    import build_extension
+
+    tmp = tmp_path_factory.mktemp("blender_train")
+    image = (REPO / "docs" / "images" / "blender_training.png" if os.environ.get("PROMPTGS_UPDATE_DOCS_IMAGE")
+             else tmp / "blender_training.png")
+    image.parent.mkdir(parents=True, exist_ok=True)
+    strategy = "promptgs" if (REPO / "promptgs_engine" / "strategies" / "promptgs.py").is_file() else "3dgs"
+    config = {"zip": str(build_extension.build(tmp / "dist")), "tmp": str(tmp), "python": sys.executable,
+              "tumbler": str(shared_data / "tumbler"), "iterations": 20, "snapshot_every": 10,
+              "strategy": strategy, "timeout": 240, "image": str(image), "render_camera": "12.jpg"}
+    (tmp / "config.json").write_text(json.dumps(config))
+    (tmp / "home").mkdir()
+    env = dict(os.environ, HOME=str(tmp / "home"), OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "2"))
+    done = subprocess.run([sys.executable, str(SCRIPTS / "train_checks.py"), str(tmp / "config.json"),
+                           str(tmp / "results.json")], env=env, capture_output=True, text=True, timeout=900)
+    if not (tmp / "results.json").is_file():
+        pytest.fail(f"the Blender script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    return tmp, json.loads((tmp / "results.json").read_text())
+
+
+def _ok(results, name):
+    assert name in results, f"check {name} did not run"
+    assert results[name]["ok"], f"{results[name]['error']}\n{results[name].get('traceback', '')}"
+    return results[name]
+
+
+def test_setup_and_trainer_probe(run):
+    info = _ok(run[1], "setup")
+    assert "promptgs_engine" in info["probe"] and "cpu" in info["probe"], info["probe"]
+
+
+def test_gaussians_object_matches_trainer_ply(run):
+    tmp, results = run
+    info = _ok(results, "train_real_trainer")
+    plyfile = pytest.importorskip("plyfile")
+    v = plyfile.PlyData.read(info["ply"])["vertex"].data
+    obj = np.load(tmp / "object_attributes.npz")
+    assert len(v) == info["n"] == len(obj["position"])
+    col = lambda *names: np.stack([v[n] for n in names], axis=1).astype(np.float64)  # noqa: E731
+    np.testing.assert_allclose(obj["position"], col("x", "y", "z"), atol=1e-5)
+    np.testing.assert_allclose(obj["opacity"], 1 / (1 + np.exp(-v["opacity"].astype(np.float64))), atol=1e-5)
+    np.testing.assert_allclose(obj["scale"], np.exp(col("scale_0", "scale_1", "scale_2")), rtol=1e-5, atol=1e-8)
+    rot = col("rot_0", "rot_1", "rot_2", "rot_3")
+    np.testing.assert_allclose(obj["rotation"], rot / np.linalg.norm(rot, axis=1, keepdims=True), atol=1e-5)
+    dc = col("f_dc_0", "f_dc_1", "f_dc_2")
+    np.testing.assert_allclose(obj["color"][:, :3], np.clip(0.5 + 0.28209479177387814 * dc, 0, 1), atol=1e-5)
+    assert obj["score"].shape == obj["error"].shape == (len(v),)
+
+
+def test_rendered_training_image(run):
+    info = _ok(run[1], "train_real_trainer")
+    assert "render_s" in info, "no snapshot arrived to render"
+    assert Path(run[0] / "config.json").is_file()
+    image = json.loads((run[0] / "config.json").read_text())["image"]
+    assert Path(image).is_file() and Path(image).stat().st_size > 10_000
+
+
+def test_cancel_keeps_last_snapshot(run):
+    info = _ok(run[1], "cancel_real_trainer")
+    assert info["snapshot_step"] > 0
+
+
+def test_trainer_never_imported_in_blender(run):
+    _ok(run[1], "never_imports_torch_or_engine")
