@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import stat
 import subprocess
 import sys
@@ -46,11 +47,10 @@ def projections(tumbler: Path, n_cameras: int = 6, n_points: int = 5) -> list[di
     return out
 
 
-@pytest.fixture(scope="module")
-def results(tmp_path_factory, shared_data):
+def prepare(tmp: Path, shared_data: Path) -> Path:
+    """Build the zip, write the fake trainer wrapper and the config; returns the config path."""
     import build_extension
 
-    tmp = tmp_path_factory.mktemp("blender_addon")
     zip_path = build_extension.build(tmp / "dist")
     fake = tmp / "fake_python"
     fake.write_text(f"#!/bin/sh\nexec {sys.executable} {SCRIPTS / 'fake_trainer.py'} \"$@\"\n")
@@ -60,8 +60,15 @@ def results(tmp_path_factory, shared_data):
               "projections": projections(shared_data / "tumbler")}
     (tmp / "config.json").write_text(json.dumps(config))
     (tmp / "home").mkdir()
-    env = dict(os.environ, HOME=str(tmp / "home"), PYTHONNOUSERSITE="1")
-    done = subprocess.run([sys.executable, str(SCRIPTS / "addon_checks.py"), str(tmp / "config.json"),
+    return tmp / "config.json"
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory, shared_data):
+    tmp = tmp_path_factory.mktemp("blender_addon")
+    config = prepare(tmp, shared_data)
+    env = dict(os.environ, HOME=str(tmp / "home"))
+    done = subprocess.run([sys.executable, str(SCRIPTS / "addon_checks.py"), str(config),
                            str(tmp / "results.json")], env=env, capture_output=True, text=True, timeout=600)
     if not (tmp / "results.json").is_file():
         pytest.fail(f"the Blender script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
@@ -69,7 +76,7 @@ def results(tmp_path_factory, shared_data):
 
 
 CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap", "root_puts_capture_upright",
-          "import_fern_reports_distortion", "prompt_cube_box_in_job_file",
+          "import_fern_reports_distortion", "prompt_cube_box_in_job_file", "prompt_around_selected_points",
           "train_with_recorded_events_updates_objects", "cancel_keeps_last_snapshot",
           "crashed_trainer_shows_error_lines", "wrong_trainer_path_is_a_clear_error",
           "dataset_without_images_is_a_clear_error", "load_result_reads_3dgs_ply", "million_points_update",
@@ -81,3 +88,28 @@ def test_blender(results, name):
     assert name in results, f"check {name} did not run"
     outcome = results[name]
     assert outcome["ok"], f"{outcome['error']}\n{outcome.get('traceback', '')}"
+
+
+def _blender_binary() -> str | None:
+    """A ``blender`` (≥ 4.2, extensions) on PATH or in $BLENDER, else None."""
+    binary = os.environ.get("BLENDER") or shutil.which("blender")
+    if not binary:
+        return None
+    try:
+        out = subprocess.run([binary, "--version"], capture_output=True, text=True, timeout=60).stdout
+        major, minor = (int(x) for x in out.split()[1].split(".")[:2])
+    except (OSError, ValueError, IndexError, subprocess.TimeoutExpired):
+        return None
+    return binary if (major, minor) >= (4, 2) else None
+
+
+def test_same_checks_under_blender_binary(tmp_path, shared_data):
+    binary = _blender_binary()
+    if binary is None:
+        pytest.skip("no Blender ≥ 4.2 binary (set $BLENDER)")
+    config = prepare(tmp_path, shared_data)
+    env = dict(os.environ, HOME=str(tmp_path / "home"))
+    done = subprocess.run([binary, "-b", "--factory-startup", "--python-exit-code", "1", "--python",
+                           str(SCRIPTS / "addon_checks.py"), "--", str(config), str(tmp_path / "results.json")],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]

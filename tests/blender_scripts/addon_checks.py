@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import addon, bpy, check, config, forbidden_modules, blocked_attempts, install, run_until_idle  # noqa: E402
+from harness import addon, bpy, check, finish, config, forbidden_modules, blocked_attempts, install, run_until_idle  # noqa: E402
 
 import numpy as np  # noqa: E402
 from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
@@ -141,6 +141,33 @@ def prompt_cube_box_in_job_file():
     assert job["images"] == "images_4" and Path(job["dataset"]).name == "tumbler"
     bpy.data.objects.remove(off)
     return {"box": box, "corner_error": worst}
+
+
+@check
+def prompt_around_selected_points():
+    points = bpy.data.objects["PromptGS Sparse Points tumbler"]
+    mesh = points.data
+    n = len(mesh.vertices)
+    co = np.empty(n * 3, np.float32)
+    mesh.vertices.foreach_get("co", co)
+    co = co.reshape(n, 3)
+    chosen = np.zeros(n, bool)
+    chosen[np.argsort(np.linalg.norm(co - np.median(co, axis=0), axis=1))[:200]] = True
+    mesh.vertices.foreach_set("select", chosen)
+    for obj in bpy.context.selected_objects:
+        obj.select_set(False)
+    points.select_set(True)
+    bpy.context.view_layer.objects.active = points
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.promptgs.add_prompt()
+    cube = bpy.context.active_object
+    assert bpy.context.mode == "OBJECT" and cube.empty_display_type == "CUBE"
+    inside = cube.matrix_world.inverted() @ points.matrix_world
+    local = np.array([tuple(inside @ Vector(p.tolist())) for p in co[chosen]])
+    assert np.abs(local).max() <= 1.0 + 1e-6, np.abs(local).max()  # every chosen point in the cube
+    assert np.abs(local).max(axis=0).min() > 0.8  # and the cube is tight around them
+    bpy.data.objects.remove(cube)
+    return {}
 
 
 @check
@@ -296,3 +323,6 @@ def never_imports_torch_or_engine():
     assert not blocked_attempts, blocked_attempts
     assert not forbidden_modules(), forbidden_modules()
     return {}
+
+
+finish()

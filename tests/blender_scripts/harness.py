@@ -1,6 +1,8 @@
 """Shared set-up for scripts run inside a bpy subprocess by tests/test_blender_*.py.
 
-``python SCRIPT CONFIG.json RESULTS.json``: CONFIG holds paths prepared by the test;
+``python SCRIPT CONFIG.json RESULTS.json`` (bpy module) or
+``blender -b --factory-startup --python-exit-code 1 --python SCRIPT -- CONFIG.json RESULTS.json``
+(a Blender binary): CONFIG holds paths prepared by the test;
 each check's outcome goes to RESULTS as ``{name: {"ok": bool, "error": str, ...}}``.
 Imports of torch and promptgs_engine are blocked for the whole process, so any attempt
 by the add-on fails loudly and is recorded.
@@ -25,12 +27,13 @@ class _Block:
 
 sys.meta_path.insert(0, _Block())
 
-config = json.loads(open(sys.argv[1]).read())
+ARGS = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+config = json.loads(open(ARGS[0]).read())
 results: dict = {}
 
 
 def save():
-    with open(sys.argv[2], "w") as handle:
+    with open(ARGS[1], "w") as handle:
         json.dump(results, handle, indent=1)
 
 
@@ -80,3 +83,10 @@ def run_until_idle(timeout: float = 300.0, on_events=None) -> None:
 
 def forbidden_modules() -> list[str]:
     return sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
+
+
+def finish() -> None:
+    """Raise when a check failed, so ``blender --python-exit-code 1`` exits non-zero."""
+    failed = [name for name, outcome in results.items() if not outcome["ok"]]
+    if failed:
+        raise RuntimeError("failed checks: " + ", ".join(failed))

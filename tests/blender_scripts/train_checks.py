@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import addon, bpy, check, config, forbidden_modules, install, run_until_idle  # noqa: E402
+from harness import addon, bpy, check, finish, config, forbidden_modules, install, run_until_idle  # noqa: E402
 
 import bmesh  # noqa: E402
 import numpy as np  # noqa: E402
@@ -159,3 +159,6 @@ def cancel_real_trainer():
 @check
 def never_imports_torch_or_engine():
     assert not forbidden_modules(), forbidden_modules()
+
+
+finish()
