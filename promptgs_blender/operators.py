@@ -153,7 +153,7 @@ class PROMPTGS_OT_train(bpy.types.Operator):
     def modal(self, context, event):
         if event.type == "ESC" and event.value == "PRESS":
             training.cancel_training(context)
-        elif event.type == "TIMER" and event is not None:
+        elif event.type == "TIMER":
             if not training.drain_and_apply(context):
                 context.window_manager.event_timer_remove(self._timer)
                 return {"FINISHED"}

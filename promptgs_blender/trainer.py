@@ -124,10 +124,10 @@ def find_python(candidates: list[str] | None = None) -> str:
 class TrainerRun:
     """One engine subprocess whose stdout is read into :attr:`events` by a thread."""
 
-    def __init__(self, argv: list[str], log_path: Path, cwd: Path | None = None):
+    def __init__(self, argv: list[str], log_path: Path, out: Path | None = None):
         self.argv = list(argv)
         self.log_path = Path(log_path)
-        self.cwd = cwd
+        self.out = out  # the folder the job writes (informational)
         self.events: queue.Queue[dict] = queue.Queue()
         self.process: subprocess.Popen | None = None
         self.cancel_requested = False
@@ -147,7 +147,7 @@ class TrainerRun:
             kwargs["start_new_session"] = True  # Ctrl-C in Blender's terminal is ours to forward
         try:
             self.process = subprocess.Popen(self.argv, stdout=subprocess.PIPE, stderr=self._stderr,
-                                            stdin=subprocess.DEVNULL, cwd=self.cwd, env=env, **kwargs)
+                                            stdin=subprocess.DEVNULL, env=env, **kwargs)
         except OSError as exc:
             self._stderr.close()
             raise TrainerError(f"Cannot start the trainer {self.argv[0]}: {exc.strerror or exc}") from None

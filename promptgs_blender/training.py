@@ -18,7 +18,7 @@ import numpy as np
 
 from . import colmap, display, importer, plyio, prompts
 from .props import prefs
-from .trainer import TrainerError, TrainerRun, engine_command, find_python, reduce_event
+from .trainer import TrainerError, TrainerRun, check_python, engine_command, find_python, reduce_event
 
 GAUSSIANS = "PromptGS Gaussians"
 LOSS_FIELD = "PromptGS Loss Field"
@@ -133,9 +133,11 @@ def start_training(context) -> TrainerRun:
         job_path.write_text(json.dumps(job, indent=2))
         state.out_dir, state.job_path = str(out), str(job_path)
         python = trainer_python(context)
-        argv = engine_command(python or "python", "train", str(dataset), "--out", str(out), "--events",
+        if not python:
+            raise TrainerError(check_python(""))
+        argv = engine_command(python, "train", str(dataset), "--out", str(out), "--events",
                               "--job", str(job_path))
-        run = TrainerRun(argv, out / "trainer_stderr.log")
+        run = TrainerRun(argv, out / "trainer_stderr.log", out=out)
         state.log_path = str(run.log_path)
         run.start()
     except (UserError, TrainerError, OSError) as exc:
@@ -172,8 +174,6 @@ def drain_and_apply(context=None) -> bool:
         events = _train.drain()
         snapshot, result = None, None
         for event in events:
-            if event.get("event") == "exit" and state.status == "STARTING":
-                state.status = "RUNNING"
             reduce_event(state, event)
             if event.get("event") == "snapshot" and event.get("path"):
                 snapshot = event["path"]
@@ -204,7 +204,7 @@ def drain_and_apply(context=None) -> bool:
                 if not ok:
                     state.dataset_message = (tail[-1] if tail else f"exit code {event.get('returncode')}")[:300]
                 else:
-                    state.dataset_message = f"Dataset written to {_dataset_job.cwd_out}"
+                    state.dataset_message = f"Dataset written to {_dataset_job.out}"
         if _dataset_job.finished and _dataset_job.events.empty():
             _dataset_job = None
         else:
@@ -285,14 +285,15 @@ def start_dataset_job(context, out: Path, preset: str, seed: int) -> TrainerRun:
     if _dataset_job is not None and not _dataset_job.finished:
         raise UserError("A dataset is already being generated")
     python = trainer_python(context)
-    out.mkdir(parents=True, exist_ok=True)
-    argv = engine_command(python or "python", "dataset", "mountain", "--preset", preset,
-                          "--out", str(out), "--seed", str(seed))
-    run = TrainerRun(argv, out / "dataset_stderr.log")
-    run.cwd_out = out
     try:
+        if not python:
+            raise TrainerError(check_python(""))
+        out.mkdir(parents=True, exist_ok=True)
+        argv = engine_command(python, "dataset", "mountain", "--preset", preset, "--out", str(out),
+                              "--seed", str(seed))
+        run = TrainerRun(argv, out / "dataset_stderr.log", out=out)
         run.start()
-    except TrainerError as exc:
+    except (TrainerError, OSError) as exc:
         state.dataset_status, state.dataset_message = "ERROR", str(exc)
         raise UserError(str(exc)) from None
     state.dataset_status, state.dataset_message = "RUNNING", f"Generating into {out}…"

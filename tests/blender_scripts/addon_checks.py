@@ -319,6 +319,19 @@ def million_points_update():
 
 
 @check
+def loading_a_file_stops_the_trainer():
+    fake_trainer("slow")
+    bpy.ops.promptgs.train()
+    run = addon("training").current_run()
+    time.sleep(0.3)
+    assert run.running
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert not run.running and run.process.returncode is not None
+    assert addon("training").current_run() is None
+    return {"returncode": run.process.returncode}
+
+
+@check
 def never_imports_torch_or_engine():
     assert not blocked_attempts, blocked_attempts
     assert not forbidden_modules(), forbidden_modules()
