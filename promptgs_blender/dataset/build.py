@@ -1,0 +1,296 @@
+"""Build the Blender scene of a layout: terrain, flames, drones, sun and sky, camera (bpy)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import bpy
+import numpy as np
+
+from . import geometry
+from .terrain import Terrain, terrain_colors
+
+
+@dataclass
+class BuiltScene:
+    scene: Any
+    camera: Any
+    terrain: Any
+    drones: list[Any] = field(default_factory=list)  # in layout order (id = index + 1)
+    flames: list[Any] = field(default_factory=list)  # flame meshes and their lights
+
+
+def _mesh_object(name: str, verts: np.ndarray, faces: list[list[int]], collection: Any) -> Any:
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(np.asarray(verts, dtype=np.float64).tolist(), [], faces)
+    mesh.update()
+    obj = bpy.data.objects.new(name, mesh)
+    collection.objects.link(obj)
+    return obj
+
+
+def _grid_object(name: str, terrain: Terrain, collection: Any) -> Any:
+    """The terrain grid, filled with foreach_set (from_pydata is slow for big grids)."""
+    verts = terrain.vertices().astype(np.float32)
+    quads = terrain.quads().astype(np.int32)
+    mesh = bpy.data.meshes.new(name)
+    mesh.vertices.add(len(verts))
+    mesh.vertices.foreach_set("co", verts.ravel())
+    mesh.loops.add(quads.size)
+    mesh.loops.foreach_set("vertex_index", quads.ravel())
+    mesh.polygons.add(len(quads))
+    mesh.polygons.foreach_set("loop_start", np.arange(0, quads.size, 4, dtype=np.int32))
+    mesh.polygons.foreach_set("use_smooth", np.ones(len(quads), dtype=bool))
+    mesh.update(calc_edges=True)
+    mesh.validate()
+    obj = bpy.data.objects.new(name, mesh)
+    collection.objects.link(obj)
+    return obj
+
+
+def _nodes(material: Any) -> tuple[Any, Any]:
+    tree = material.node_tree
+    tree.nodes.clear()
+    out = tree.nodes.new("ShaderNodeOutputMaterial")
+    return tree, out
+
+
+def _terrain_material() -> Any:
+    """Vertex colours with fine procedural variation and bump, so images hold SIFT texture."""
+    mat = bpy.data.materials.new("terrain")
+    mat.use_nodes = True
+    tree, out = _nodes(mat)
+    n = tree.nodes
+    attr = n.new("ShaderNodeAttribute")
+    attr.attribute_name = "terrain_colour"
+    coord = n.new("ShaderNodeTexCoord")
+    fine = n.new("ShaderNodeTexNoise")
+    fine.inputs["Scale"].default_value = 0.3
+    fine.inputs["Detail"].default_value = 5.0
+    fine.inputs["Roughness"].default_value = 0.6
+    tree.links.new(coord.outputs["Object"], fine.inputs["Vector"])
+    ramp = n.new("ShaderNodeMapRange")
+    ramp.inputs["From Min"].default_value = 0.3
+    ramp.inputs["From Max"].default_value = 0.7
+    ramp.inputs["To Min"].default_value = 0.6
+    ramp.inputs["To Max"].default_value = 1.4
+    tree.links.new(fine.outputs["Fac"], ramp.inputs["Value"])
+    mix = n.new("ShaderNodeMix")
+    mix.data_type = "RGBA"
+    mix.blend_type = "MULTIPLY"
+    mix.inputs["Factor"].default_value = 1.0
+    tree.links.new(attr.outputs["Color"], mix.inputs["A"])
+    tree.links.new(ramp.outputs["Result"], mix.inputs["B"])
+    grain = n.new("ShaderNodeTexNoise")
+    grain.inputs["Scale"].default_value = 2.0
+    grain.inputs["Detail"].default_value = 2.0
+    tree.links.new(coord.outputs["Object"], grain.inputs["Vector"])
+    bump = n.new("ShaderNodeBump")
+    bump.inputs["Strength"].default_value = 0.3
+    tree.links.new(grain.outputs["Fac"], bump.inputs["Height"])
+    bsdf = n.new("ShaderNodeBsdfPrincipled")
+    bsdf.inputs["Roughness"].default_value = 0.9
+    tree.links.new(mix.outputs["Result"], bsdf.inputs["Base Color"])
+    tree.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
+    tree.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    return mat
+
+
+def _flame_material(strength: float) -> Any:
+    """Emission coloured by the vertex colour, fading to transparent where alpha is low."""
+    mat = bpy.data.materials.new("flame")
+    mat.use_nodes = True
+    tree, out = _nodes(mat)
+    n = tree.nodes
+    attr = n.new("ShaderNodeAttribute")
+    attr.attribute_name = "flame_colour"
+    emit = n.new("ShaderNodeEmission")
+    emit.inputs["Strength"].default_value = strength
+    tree.links.new(attr.outputs["Color"], emit.inputs["Color"])
+    transparent = n.new("ShaderNodeBsdfTransparent")
+    mix = n.new("ShaderNodeMixShader")
+    tree.links.new(attr.outputs["Alpha"], mix.inputs["Fac"])
+    tree.links.new(transparent.outputs["BSDF"], mix.inputs[1])
+    tree.links.new(emit.outputs["Emission"], mix.inputs[2])
+    tree.links.new(mix.outputs["Shader"], out.inputs["Surface"])
+    return mat
+
+
+def _plain_material(name: str, colour: tuple[float, float, float], roughness: float) -> Any:
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    tree, out = _nodes(mat)
+    bsdf = tree.nodes.new("ShaderNodeBsdfPrincipled")
+    bsdf.inputs["Base Color"].default_value = (*colour, 1.0)
+    bsdf.inputs["Roughness"].default_value = roughness
+    tree.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    return mat
+
+
+def _add_colour_attribute(obj: Any, name: str, rgba: np.ndarray) -> None:
+    attr = obj.data.color_attributes.new(name=name, type="FLOAT_COLOR", domain="POINT")
+    attr.data.foreach_set("color", np.asarray(rgba, dtype=np.float32).ravel())
+
+
+def _sun_direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
+    """Unit vector from the ground towards the sun."""
+    e, a = math.radians(elevation_deg), math.radians(azimuth_deg)
+    return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+
+
+def _world(scene: Any, sun: dict[str, float]) -> None:
+    world = bpy.data.worlds.new("sky")
+    scene.world = world
+    world.use_nodes = True
+    tree = world.node_tree
+    tree.nodes.clear()
+    sky = tree.nodes.new("ShaderNodeTexSky")
+    sky.sky_type = "MULTIPLE_SCATTERING" if "MULTIPLE_SCATTERING" in {
+        e.identifier for e in sky.bl_rna.properties["sky_type"].enum_items} else sky.sky_type
+    if hasattr(sky, "sun_elevation"):
+        sky.sun_elevation = math.radians(sun["elevation_deg"])
+        sky.sun_rotation = math.radians(sun["azimuth_deg"] + 90.0)
+    if hasattr(sky, "sun_disc"):
+        sky.sun_disc = False  # the sun lamp gives the direct light and sharp shadows
+    bg = tree.nodes.new("ShaderNodeBackground")
+    bg.inputs["Strength"].default_value = 0.15
+    out = tree.nodes.new("ShaderNodeOutputWorld")
+    tree.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    tree.links.new(bg.outputs["Background"], out.inputs["Surface"])
+    world.color = (0.0, 0.0, 0.0)  # what the mask (Workbench) pass shows behind everything
+
+
+def build_scene(terrain: Terrain, layout: dict[str, Any], params: dict[str, Any]) -> BuiltScene:
+    """A fresh scene with everything in ``layout``; render settings for Cycles on the CPU."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    coll = scene.collection
+
+    # Terrain
+    scorch = [(f["centre"][0], f["centre"][1]) for f in layout["flames"]]
+    colours = terrain_colors(
+        np.random.default_rng(layout["terrain"]["colour_seed"]), terrain, float(params["snow_line"]),
+        scorch, 2.2 * float(params["flame_height"]),
+    )
+    terrain_obj = _grid_object("terrain", terrain, coll)
+    _add_colour_attribute(terrain_obj, "terrain_colour", np.concatenate([colours, np.ones((len(colours), 1))], axis=1))
+    terrain_obj.data.materials.append(_terrain_material())
+    terrain_obj.color = (0.0, 0.0, 0.0, 1.0)
+
+    # Flames, each with a warm point light for the glow on the ground
+    built_flames = []
+    flame_mat = _flame_material(strength=6.0)
+    for f in layout["flames"]:
+        verts, faces, rgba = geometry.flame_mesh(f["mesh_seed"], f["height"], f["radius"], f["n_tongues"])
+        obj = _mesh_object(f"flame_{f['id']}", verts, faces, coll)
+        _add_colour_attribute(obj, "flame_colour", rgba)
+        obj.data.materials.append(flame_mat)
+        obj.location = f["centre"]
+        obj.color = (0.0, 0.0, 0.0, 1.0)
+        light = bpy.data.lights.new(f"flame_light_{f['id']}", "POINT")
+        light.color = (1.0, 0.45, 0.12)
+        light.energy = 2500.0 * (f["height"] / 4.0) ** 2
+        light.shadow_soft_size = f["radius"]
+        light_obj = bpy.data.objects.new(f"flame_light_{f['id']}", light)
+        light_obj.location = (f["centre"][0], f["centre"][1], f["centre"][2] + 0.5 * f["height"])
+        coll.objects.link(light_obj)
+        built_flames += [obj, light_obj]
+
+    # Drones: frame in the drone colour, rotor discs a darker shade
+    parts = geometry.drone_parts()
+    materials: dict[str, tuple[Any, Any]] = {}
+    drones = []
+    for d in layout["drones"]:
+        if d["color_name"] not in materials:
+            c = tuple(d["color"])
+            materials[d["color_name"]] = (
+                _plain_material(f"drone_{d['color_name']}", c, 0.35),
+                _plain_material(f"rotor_{d['color_name']}", tuple(0.45 * x + 0.02 for x in c), 0.5),
+            )
+        frame_mat, rotor_mat = materials[d["color_name"]]
+        verts = np.concatenate([parts["frame"][0], parts["rotors"][0]])
+        n_frame = len(parts["frame"][1])
+        faces = parts["frame"][1] + [[i + len(parts["frame"][0]) for i in f] for f in parts["rotors"][1]]
+        obj = _mesh_object(f"drone_{d['id']:03d}", verts, faces, coll)
+        obj.data.materials.append(frame_mat)
+        obj.data.materials.append(rotor_mat)
+        obj.data.polygons.foreach_set("material_index", np.array([0] * n_frame + [1] * (len(faces) - n_frame), dtype=np.int32))
+        m = np.eye(4)
+        m[:3, :3] = np.asarray(d["rotation"]) * d["size"]
+        m[:3, 3] = d["centre"]
+        obj.matrix_world = _matrix(m)
+        drones.append(obj)
+
+    # Sun and sky
+    sun = layout["sun"]
+    _world(scene, sun)
+    sun_light = bpy.data.lights.new("sun", "SUN")
+    sun_light.energy = 4.0
+    sun_light.angle = math.radians(1.5)
+    sun_obj = bpy.data.objects.new("sun", sun_light)
+    direction = _sun_direction(sun["elevation_deg"], sun["azimuth_deg"])
+    sun_obj.rotation_euler = _rotation_to(direction).to_euler()
+    coll.objects.link(sun_obj)
+
+    # Camera: Blender looks down -z with y up; sensor fit horizontal
+    cam0 = layout["cameras"][0]
+    cam_data = bpy.data.cameras.new("camera")
+    cam_data.sensor_fit = "HORIZONTAL"
+    cam_data.sensor_width = 36.0
+    cam_data.lens = cam0["fx"] * 36.0 / cam0["width"]
+    cam_data.clip_start = 0.1
+    cam_data.clip_end = 2000.0
+    cam_obj = bpy.data.objects.new("camera", cam_data)
+    coll.objects.link(cam_obj)
+    scene.camera = cam_obj
+
+    # Render settings
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = int(params["samples"])
+    scene.cycles.use_adaptive_sampling = False
+    scene.cycles.seed = int(params["seed"])
+    scene.cycles.use_animated_seed = False
+    scene.cycles.use_denoising = bool(params["denoise"])
+    scene.cycles.max_bounces = int(params["max_bounces"])
+    scene.cycles.diffuse_bounces = min(2, int(params["max_bounces"]))
+    scene.cycles.glossy_bounces = min(2, int(params["max_bounces"]))
+    scene.cycles.transparent_max_bounces = 16
+    scene.cycles.caustics_reflective = False
+    scene.cycles.caustics_refractive = False
+    scene.cycles.pixel_filter_type = "BOX"  # each pixel is the mean over its own area: tiny drones stay crisp
+    scene.cycles.filter_width = 1.0
+    scene.render.resolution_x = int(params["width"])
+    scene.render.resolution_y = int(params["height"])
+    scene.render.resolution_percentage = 100
+    scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0
+    scene.render.image_settings.file_format = "PNG"
+    scene.render.image_settings.color_mode = "RGB"
+    scene.render.image_settings.color_depth = "8"
+    scene.view_settings.view_transform = "AgX"
+    scene.view_settings.look = "AgX - Medium High Contrast"
+    scene.render.use_persistent_data = True
+    return BuiltScene(scene=scene, camera=cam_obj, terrain=terrain_obj, drones=drones, flames=built_flames)
+
+
+def _matrix(m: np.ndarray) -> Any:
+    from mathutils import Matrix
+
+    return Matrix([list(map(float, row)) for row in m])
+
+
+def _rotation_to(direction: np.ndarray) -> Any:
+    """Rotation taking a sun lamp's -z (its light direction) to point away from ``direction``."""
+    from mathutils import Vector
+
+    return Vector((float(direction[0]), float(direction[1]), float(direction[2]))).to_track_quat("Z", "Y")
+
+
+def camera_matrix_world(world_to_camera: list[list[float]]) -> Any:
+    """Blender camera matrix_world for a COLMAP world_to_camera (flip y and z camera axes)."""
+    w2c = np.asarray(world_to_camera, dtype=np.float64)
+    c2w = np.linalg.inv(w2c)
+    c2w[:3, :3] = c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    return _matrix(c2w)
