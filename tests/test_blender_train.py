@@ -37,7 +37,8 @@ def run(tmp_path_factory, shared_data):
     strategy = "promptgs" if (REPO / "promptgs_engine" / "strategies" / "promptgs.py").is_file() else "3dgs"
     config = {"zip": str(build_extension.build(tmp / "dist")), "tmp": str(tmp), "python": sys.executable,
               "tumbler": str(shared_data / "tumbler"), "iterations": 20, "snapshot_every": 10,
-              "strategy": strategy, "timeout": 240, "image": str(image), "render_camera": "12.jpg"}
+              "strategy": strategy, "timeout": 240, "image": str(image), "render_camera": "12.jpg",
+              "prompt_rect": [210, 160, 560, 380]}  # the cup in 12.jpg
     (tmp / "config.json").write_text(json.dumps(config))
     (tmp / "home").mkdir()
     env = dict(os.environ, HOME=str(tmp / "home"), OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "2"))

@@ -27,6 +27,35 @@ def prefs():
     return bpy.context.preferences.addons["bl_ext.user_default.promptgs"].preferences
 
 
+def select_object_points(camera: str, rect: list) -> None:
+    """Select (in Edit Mode) the sparse points seen inside a pixel rectangle of a camera,
+    the middle 60 % of them in depth: the object the photos are about."""
+    from bpy_extras.object_utils import world_to_camera_view
+
+    sc = scene()
+    cam = bpy.data.objects[camera]
+    addon("importer").use_camera(sc, cam)
+    points = next(o for o in bpy.data.objects if o.name.startswith("PromptGS Sparse Points"))
+    width, height = sc.render.resolution_x, sc.render.resolution_y
+    mesh = points.data
+    chosen, depths = [], []
+    for i, vertex in enumerate(mesh.vertices):
+        ndc = world_to_camera_view(sc, cam, points.matrix_world @ vertex.co)
+        u, v = ndc.x * width, (1.0 - ndc.y) * height
+        if ndc.z > 0 and rect[0] <= u <= rect[2] and rect[1] <= v <= rect[3]:
+            chosen.append(i)
+            depths.append(ndc.z)
+    lo, hi = np.percentile(depths, [20, 80])
+    select = np.zeros(len(mesh.vertices), bool)
+    select[[i for i, d in zip(chosen, depths) if lo <= d <= hi]] = True
+    mesh.vertices.foreach_set("select", select)
+    for obj in bpy.context.selected_objects:
+        obj.select_set(False)
+    points.select_set(True)
+    bpy.context.view_layer.objects.active = points
+    bpy.ops.object.mode_set(mode="EDIT")
+
+
 @check
 def setup():
     install()
@@ -40,11 +69,8 @@ def setup():
     bpy.ops.promptgs.import_colmap(directory=config["tumbler"], images="images_4")
     settings = scene().promptgs
     root = settings.root
-    # a prompt around the middle of the sparse points
-    scene().cursor.location = root.matrix_world.translation
-    bpy.ops.promptgs.add_prompt()
-    cube = bpy.context.active_object
-    cube.scale = (0.35, 0.35, 0.5)
+    select_object_points(config["render_camera"], config["prompt_rect"])
+    bpy.ops.promptgs.add_prompt()  # around the selected points
     settings.preset = "CUSTOM"
     settings.strategy = config["strategy"]
     settings.backend = "cpu"
