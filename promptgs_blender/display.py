@@ -2,10 +2,12 @@
 
 A points-only mesh keeps the data (``foreach_set`` of numpy arrays, no per-point Python)
 and can change its point count from one snapshot to the next while the object stays the
-same. The "PromptGS Points" node group draws each point as a small sphere (or as a
-point-cloud point) and picks one of 16 colour-map materials per point from the integer
-attribute ``display_bin``, so even Workbench shows the chosen attribute; bin −1 uses the
-"PromptGS RGB" material, which reads the ``color`` attribute (Material Preview, Cycles).
+same. The "PromptGS Points" node group draws the points either as point-cloud points
+(cheap: a million in well under a second) or as small ico-spheres (about 12 s per million
+to evaluate, so only for small sets). Colour: the ``display_color`` attribute (the chosen
+attribute through a colour map, or the RGB colour) read by the "PromptGS Display"
+material in Material Preview and Rendered shading; for Workbench, which ignores
+attributes, spheres also get one of 16 colour-map materials from ``display_bin``.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import numpy as np
 
 N_BINS = 16
 NODE_GROUP = "PromptGS Points"
-RGB_MATERIAL = "PromptGS RGB"
+DISPLAY_MATERIAL = "PromptGS Display"
+SPHERES_UP_TO = 50_000  # "auto" style: spheres up to this many points, plain points above
 # a perceptual dark-blue → green → yellow ramp (control points, linear RGB)
 _RAMP = np.array([[0.07, 0.02, 0.20], [0.10, 0.20, 0.55], [0.05, 0.45, 0.50],
                   [0.20, 0.70, 0.25], [0.80, 0.85, 0.10], [1.00, 0.95, 0.35]])
@@ -45,16 +48,16 @@ def bin_material(index: int) -> bpy.types.Material:
     return mat
 
 
-def rgb_material() -> bpy.types.Material:
-    mat = bpy.data.materials.get(RGB_MATERIAL)
+def display_material() -> bpy.types.Material:
+    mat = bpy.data.materials.get(DISPLAY_MATERIAL)
     if mat is None:
-        mat = bpy.data.materials.new(RGB_MATERIAL)
+        mat = bpy.data.materials.new(DISPLAY_MATERIAL)
         mat.diffuse_color = (0.6, 0.6, 0.6, 1.0)
         mat.use_nodes = True
         tree = mat.node_tree
         tree.nodes.clear()
         attr = tree.nodes.new("ShaderNodeAttribute")
-        attr.attribute_name = "color"
+        attr.attribute_name = "display_color"
         emit = tree.nodes.new("ShaderNodeEmission")
         out = tree.nodes.new("ShaderNodeOutputMaterial")
         tree.links.new(attr.outputs["Color"], emit.inputs["Color"])
@@ -89,16 +92,16 @@ def node_group() -> bpy.types.NodeTree:
     links.new(ico.outputs["Mesh"], instance.inputs["Instance"])
     realize = nodes.new("GeometryNodeRealizeInstances")
     links.new(instance.outputs["Instances"], realize.inputs["Geometry"])
-    switch = nodes.new("GeometryNodeSwitch")
-    switch.input_type = "GEOMETRY"
-    links.new(g_in.outputs["Spheres"], switch.inputs["Switch"])
-    links.new(to_points.outputs["Points"], switch.inputs["False"])
-    links.new(realize.outputs["Geometry"], switch.inputs["True"])
 
-    set_rgb = nodes.new("GeometryNodeSetMaterial")
-    set_rgb.inputs["Material"].default_value = rgb_material()
-    links.new(switch.outputs[0], set_rgb.inputs["Geometry"])
-    geometry = set_rgb.outputs["Geometry"]
+    # plain points: one material reading display_color
+    points_mat = nodes.new("GeometryNodeSetMaterial")
+    points_mat.inputs["Material"].default_value = display_material()
+    links.new(to_points.outputs["Points"], points_mat.inputs["Geometry"])
+    # spheres: the same, then a colour-map material per display_bin (Workbench)
+    spheres_mat = nodes.new("GeometryNodeSetMaterial")
+    spheres_mat.inputs["Material"].default_value = display_material()
+    links.new(realize.outputs["Geometry"], spheres_mat.inputs["Geometry"])
+    geometry = spheres_mat.outputs["Geometry"]
     bins = nodes.new("GeometryNodeInputNamedAttribute")
     bins.data_type = "INT"
     bins.inputs["Name"].default_value = "display_bin"
@@ -112,6 +115,12 @@ def node_group() -> bpy.types.NodeTree:
         links.new(geometry, set_mat.inputs["Geometry"])
         links.new(equal.outputs["Result"], set_mat.inputs["Selection"])
         geometry = set_mat.outputs["Geometry"]
+    switch = nodes.new("GeometryNodeSwitch")
+    switch.input_type = "GEOMETRY"
+    links.new(g_in.outputs["Spheres"], switch.inputs["Switch"])
+    links.new(points_mat.outputs["Geometry"], switch.inputs["False"])
+    links.new(geometry, switch.inputs["True"])
+    geometry = switch.outputs[0]
     links.new(geometry, g_out.inputs["Geometry"])
     return group
 
@@ -121,6 +130,11 @@ def _socket_id(group: bpy.types.NodeTree, name: str) -> str:
         if getattr(item, "in_out", None) == "INPUT" and item.name == name:
             return item.identifier
     raise KeyError(name)
+
+
+def use_spheres(style: str, n: int) -> bool:
+    """Whether a display style ('AUTO', 'SPHERES', 'POINTS') draws ``n`` points as spheres."""
+    return style == "SPHERES" or (style == "AUTO" and n <= SPHERES_UP_TO)
 
 
 def set_style(obj: bpy.types.Object, radius: float | None = None, spheres: bool | None = None) -> None:
@@ -163,15 +177,18 @@ def _attribute_kind(array: np.ndarray, name: str) -> tuple[str, str, int]:
             4: ("QUATERNION", "value", 4)}[width]
 
 
-def set_points(obj: bpy.types.Object, positions: np.ndarray, attributes: dict[str, np.ndarray]) -> None:
-    """Replace the points and their attributes (same object and mesh datablock)."""
+def set_points(obj: bpy.types.Object, positions: np.ndarray | None, attributes: dict[str, np.ndarray]) -> None:
+    """Replace the points (unless ``positions`` is None) and set attributes, in place."""
     mesh = obj.data
-    positions = np.ascontiguousarray(positions, np.float32).reshape(-1, 3)
-    n = len(positions)
-    if len(mesh.vertices) != n:
-        mesh.clear_geometry()
-        mesh.vertices.add(n)
-    mesh.vertices.foreach_set("co", positions.ravel())
+    if positions is None:
+        n = len(mesh.vertices)
+    else:
+        positions = np.ascontiguousarray(positions, np.float32).reshape(-1, 3)
+        n = len(positions)
+        if len(mesh.vertices) != n:
+            mesh.clear_geometry()
+            mesh.vertices.add(n)
+        mesh.vertices.foreach_set("co", positions.ravel())
     for name, array in attributes.items():
         array = np.asarray(array)
         data_type, prop, width = _attribute_kind(array, name)
@@ -208,15 +225,29 @@ def color_by(obj: bpy.types.Object, name: str) -> None:
     """Colour the points by one attribute: colour-map bins, or RGB for ``color``."""
     mesh = obj.data
     n = len(mesh.vertices)
+    note = ""
     if name == "color" or name not in mesh.attributes:
         bins = np.full(n, -1, np.int32)
+        note = "" if name == "color" else f"no '{name}' attribute: RGB colours"
     else:
         values = get_attribute(obj, name).astype(np.float64)
         if values.ndim == 2:
             values = values.mean(axis=1) if name == "scale" else np.linalg.norm(values, axis=1)
         lo, hi = (np.percentile(values, [2, 98]) if n else (0.0, 1.0))
-        t = (values - lo) / (hi - lo) if hi > lo else np.zeros(n)
+        t = (values - lo) / (hi - lo) if hi > lo else np.full(n, 0.5)
         bins = np.clip((t * N_BINS).astype(np.int32), 0, N_BINS - 1)
+        if n and not hi > lo:
+            note = f"'{name}' is {lo:g} everywhere" + (" (the strategy computes none)" if lo == 0 else "")
+        elif n:
+            note = f"'{name}': {lo:.3g} … {hi:.3g} (2–98 %)"
+    obj["promptgs_color_note"] = note
+    if name == "color" and "color" in mesh.attributes:
+        rgb = get_attribute(obj, "color")[:, :3]
+    elif name == "color" or name not in mesh.attributes:
+        rgb = np.full((n, 3), 0.6)
+    else:
+        rgb = colormap((bins + 0.5) / N_BINS)
+    set_points(obj, None, {"display_color": rgb})
     set_points_attribute(obj, "display_bin", bins)
     obj["promptgs_color_by"] = name
 

@@ -1,7 +1,5 @@
 """Operators: import, prompts, train/cancel, load result, trainer check, dataset generation."""
 
-from __future__ import annotations
-
 import time
 from pathlib import Path
 

@@ -1,7 +1,5 @@
 """Preferences, per-scene settings and the (unsaved) state of the running job."""
 
-from __future__ import annotations
-
 import bpy
 from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
                        StringProperty)
@@ -55,6 +53,23 @@ def _apply_preset(self, context):
         self.iterations = PRESETS[self.preset]
 
 
+def _recolor(self, context):
+    from . import display
+    obj = bpy.data.objects.get("PromptGS Gaussians")
+    if obj is not None and obj.type == "MESH":
+        display.color_by(obj, context.scene.promptgs.color_by)
+
+
+def _restyle(self, context):
+    from . import display
+    settings = context.scene.promptgs
+    for name in ("PromptGS Gaussians", "PromptGS Loss Field"):
+        obj = bpy.data.objects.get(name)
+        if obj is not None:
+            display.set_style(obj, radius=settings.point_radius * (3.0 if "Loss" in name else 1.0),
+                              spheres=display.use_spheres(settings.display_style, len(obj.data.vertices)))
+
+
 class PromptGSSettings(bpy.types.PropertyGroup):
     dataset: StringProperty(name="Dataset", subtype="DIR_PATH",
                             description="Folder with images/ and sparse/0 (a COLMAP model)")
@@ -78,27 +93,16 @@ class PromptGSSettings(bpy.types.PropertyGroup):
                                 description="Steps between viewport updates")
     seed: IntProperty(name="Seed", default=0, min=0)
     color_by: EnumProperty(name="Colour By", items=COLOR_ATTRIBUTES, default="error",
-                           update=lambda self, context: _recolor(context))
+                           update=_recolor)
     point_radius: FloatProperty(name="Point Size", default=0.01, min=0.0, precision=4,
-                                update=lambda self, context: _restyle(context))
+                                update=_restyle)
+    display_style: EnumProperty(name="Draw As", default="AUTO", update=_restyle, items=[
+        ("AUTO", "Auto", "Spheres up to 50,000 points, plain points above"),
+        ("SPHERES", "Spheres", "Small spheres coloured in every shading mode (slow for many points)"),
+        ("POINTS", "Points", "Point-cloud points, fast; colours in Material Preview and Rendered")])
     dataset_preset: EnumProperty(name="Preset", default="small", items=[
         ("small", "Small", ""), ("medium", "Medium", ""), ("large", "Large", "")])
     dataset_out: StringProperty(name="Output", subtype="DIR_PATH", default="")
-
-
-def _recolor(context):
-    from . import display
-    obj = bpy.data.objects.get("PromptGS Gaussians")
-    if obj is not None and obj.type == "MESH":
-        display.color_by(obj, context.scene.promptgs.color_by)
-
-
-def _restyle(context):
-    from . import display
-    for name in ("PromptGS Gaussians", "PromptGS Loss Field"):
-        obj = bpy.data.objects.get(name)
-        if obj is not None:
-            display.set_style(obj, radius=context.scene.promptgs.point_radius * (3.0 if "Loss" in name else 1.0))
 
 
 class PromptGSRunState(bpy.types.PropertyGroup):

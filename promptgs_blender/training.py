@@ -244,6 +244,7 @@ def show_gaussians(context, data: dict[str, np.ndarray]) -> bpy.types.Object:
     for key in ("score", "error"):
         attributes[key] = data[key] if key in data else np.zeros(n, np.float32)
     display.set_points(obj, data["means"], attributes)
+    display.set_style(obj, spheres=display.use_spheres(settings.display_style, n))
     display.color_by(obj, settings.color_by)
     return obj
 
@@ -253,6 +254,7 @@ def show_loss_field(context, centers: np.ndarray, loss: np.ndarray, attention: n
     obj = display.points_object(LOSS_FIELD, _results_collection(context), settings.root,
                                 radius=settings.point_radius * 3.0, spheres=True)
     display.set_points(obj, centers, {"loss": loss, "attention": attention})
+    display.set_style(obj, spheres=display.use_spheres(settings.display_style, len(centers)))
     display.color_by(obj, "loss")
     return obj
 

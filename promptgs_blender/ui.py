@@ -95,8 +95,12 @@ class PROMPTGS_PT_train(PromptGSPanel, bpy.types.Panel):
         grid.label(text=f"PSNR {state.psnr:.2f} dB")
         grid.label(text=f"{state.n_gaussians:,} Gaussians")
         grid.label(text=f"{_duration(state.elapsed_s)} elapsed")
+        if state.snapshot_step:
+            layout.label(text=f"Viewport shows step {state.snapshot_step}", icon="POINTCLOUD_DATA")
         icon = {"ERROR": "ERROR", "DONE": "CHECKMARK", "CANCELLED": "CANCEL"}.get(state.status, "INFO")
         layout.label(text=state.message or state.status.title(), icon=icon)
+        if state.out_dir:
+            layout.label(text=f"Run: {state.out_dir}", icon="FILE_FOLDER")
         if state.status == "ERROR":
             box = layout.box()
             for line in state.error_lines.splitlines():
@@ -115,6 +119,10 @@ class PROMPTGS_PT_display(PromptGSPanel, bpy.types.Panel):
         layout = self.layout
         settings = context.scene.promptgs
         layout.prop(settings, "color_by")
+        obj = bpy.data.objects.get(training.GAUSSIANS)
+        if obj is not None and obj.get("promptgs_color_note"):
+            layout.label(text=obj["promptgs_color_note"], icon="INFO")
+        layout.prop(settings, "display_style")
         layout.prop(settings, "point_radius")
         layout.operator("promptgs.load_result", text="Load PLY…", icon="FILE")
 

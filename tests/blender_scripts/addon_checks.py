@@ -6,6 +6,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 sys.path.insert(0, os.path.dirname(__file__))
 from harness import addon, bpy, check, finish, config, forbidden_modules, blocked_attempts, install, run_until_idle  # noqa: E402
@@ -315,7 +316,82 @@ def million_points_update():
     addon("training").show_gaussians(bpy.context, data)
     seconds = time.time() - start
     assert len(obj.data.vertices) == n
-    return {"update_seconds_1M": round(seconds, 2)}
+    start = time.time()
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    depsgraph.update()
+    evaluated = obj.evaluated_get(depsgraph)
+    draw_seconds = time.time() - start
+    assert evaluated.data is not None
+    assert draw_seconds < 5.0, f"evaluating the display of 1M points took {draw_seconds:.1f} s (spheres?)"
+    # points are drawn as plain points now; a small set goes back to spheres
+    small = {k: v[:1000] for k, v in data.items()}
+    addon("training").show_gaussians(bpy.context, small)
+    return {"update_seconds_1M": round(seconds, 2), "evaluate_seconds_1M": round(draw_seconds, 2)}
+
+
+class StubLayout:
+    """Records what a panel draws; checks property names and operator ids as it goes."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def __getattr__(self, name):
+        def call(*args, **kwargs):
+            if name == "prop":
+                data, prop = args[0], args[1]
+                assert prop in data.bl_rna.properties, f"{type(data).__name__} has no property {prop}"
+            elif name == "operator":
+                module, op = args[0].split(".")
+                assert hasattr(getattr(bpy.ops, module), op), f"no operator {args[0]}"
+            elif name == "label":
+                self.log.append(kwargs.get("text", ""))
+            return StubLayout(self.log)
+        return call
+
+    def __setattr__(self, name, value):
+        object.__setattr__(self, name, value)
+
+
+@check
+def display_settings_apply():
+    obj = bpy.data.objects["PromptGS Gaussians"]
+    display = addon("display")
+    mod = obj.modifiers["PromptGS Display"]
+    spheres_id = display._socket_id(mod.node_group, "Spheres")
+    radius_id = display._socket_id(mod.node_group, "Radius")
+    settings = scene().promptgs
+    settings.display_style = "POINTS"
+    assert mod[spheres_id] is False or mod[spheres_id] == 0
+    settings.display_style = "SPHERES"
+    assert mod[spheres_id]
+    settings.point_radius = 0.0123
+    assert abs(mod[radius_id] - 0.0123) < 1e-6
+    settings.color_by = "opacity"
+    assert obj["promptgs_color_by"] == "opacity"
+    opacity = display.get_attribute(obj, "opacity")
+    bins = display.get_attribute(obj, "display_bin")
+    assert bins[np.argmax(opacity)] == display.N_BINS - 1 and bins[np.argmin(opacity)] == 0
+    settings.color_by = "color"
+    rgb = display.get_attribute(obj, "display_color")[:, :3]
+    np.testing.assert_allclose(rgb, display.get_attribute(obj, "color")[:, :3], atol=1e-6)
+    settings.display_style = "AUTO"
+    settings.color_by = "error"
+    return {}
+
+
+@check
+def panels_draw_in_every_state():
+    ui = addon("ui")
+    labels = {}
+    for status in ("IDLE", "RUNNING", "ERROR", "DONE"):
+        state().status = status
+        state().error_lines = "line one\nline two"
+        log = []
+        for cls in ui.CLASSES:
+            cls.draw(SimpleNamespace(layout=StubLayout(log)), bpy.context)
+        labels[status] = log
+    assert "line two" in labels["ERROR"]
+    return {"labels": labels["ERROR"][:12]}
 
 
 @check
