@@ -235,6 +235,20 @@ class TrainerRun:
         return self.finished
 
 
+def metrics_summary(metrics: dict) -> str:
+    """'PSNR 24.10 dB, SSIM 0.812, 1,234 Gaussians, 95 s' from a metrics.json object."""
+    parts = []
+    if isinstance(metrics.get("psnr"), (int, float)):
+        parts.append(f"PSNR {metrics['psnr']:.2f} dB")
+    if isinstance(metrics.get("ssim"), (int, float)):
+        parts.append(f"SSIM {metrics['ssim']:.3f}")
+    if isinstance(metrics.get("n_gaussians"), (int, float)):
+        parts.append(f"{int(metrics['n_gaussians']):,} Gaussians")
+    if isinstance(metrics.get("train_seconds"), (int, float)):
+        parts.append(f"{metrics['train_seconds']:.0f} s")
+    return ", ".join(parts)
+
+
 def reduce_event(state, event: dict) -> None:
     """Apply one event to a progress state (any object with the RunState attributes).
 
@@ -265,9 +279,7 @@ def reduce_event(state, event: dict) -> None:
         state.status = "DONE"
         state.progress = 1.0
         state.result_ply = str(event.get("ply") or "")
-        metrics = event.get("metrics") or {}
-        shown = ", ".join(f"{k} {v:.3f}" for k, v in metrics.items() if isinstance(v, (int, float)))[:200]
-        state.message = "Done" + (f": {shown}" if shown else "")
+        state.message = "Done" + (f": {summary}" if (summary := metrics_summary(event.get("metrics") or {})) else "")
     elif kind == "error":
         if state.cancel_requested or state.status == "CANCELLING":
             state.last_output = str(event.get("message") or "")[:400]  # the trainer saw our SIGINT

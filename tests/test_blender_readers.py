@@ -237,6 +237,9 @@ def test_reader_thread_follows_recorded_events(tmp_path, monkeypatch):
     assert state.n_gaussians == 400 and state.psnr == 40.0 and state.snapshot_step == 30
     assert Path(state.last_snapshot).is_file()
     assert state.last_output == "fake trainer: not an event line"
+    assert state.message == "Done: PSNR 20.00 dB"
+    assert trainer.metrics_summary({"psnr": 24.1, "ssim": 0.8123, "n_gaussians": 1234.0, "train_seconds": 95.2,
+                                    "resolution": [1, 2]}) == "PSNR 24.10 dB, SSIM 0.812, 1,234 Gaussians, 95 s"
 
 
 def test_crashed_trainer_shows_its_last_lines(tmp_path, monkeypatch):

@@ -77,8 +77,11 @@ def root_puts_capture_upright():
 @check
 def import_fern_reports_distortion():
     before = set(bpy.data.objects.keys())
-    bpy.ops.promptgs.import_colmap(directory=config["fern"])
+    bpy.ops.promptgs.import_colmap(directory=config["fern"], backgrounds=True)
     note = scene().promptgs.distortion
+    cam = bpy.data.objects["image003.png"]
+    assert cam.data.show_background_images and cam.data.background_images[0].image.name == "image003.png"
+    assert (cam.data["promptgs_width"], cam.data["promptgs_height"]) == (504, 378)
     assert "SIMPLE_RADIAL" in note and "k=0.01975" in note, note
     new = set(bpy.data.objects.keys()) - before
     assert len([n for n in new if bpy.data.objects[n].type == "CAMERA"]) == 20
