@@ -94,21 +94,25 @@ def dataset_to_blender(up=(0.0, -1.0, 0.0), center=(0.0, 0.0, 0.0)) -> np.ndarra
 
 def blender_camera_settings(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
                             sensor_width: float = 36.0) -> dict:
-    """Blender camera data settings reproducing a pinhole camera exactly.
+    """Blender settings reproducing a pinhole camera exactly.
 
-    With ``sensor_fit='HORIZONTAL'`` the sensor width spans the image width and Blender's
-    shift is measured in image widths. COLMAP's pixel coordinates have the origin at the
-    top-left corner of the image (pixel centres at +0.5); Blender's shift moves the
-    optical axis from the image centre. Only fx sets the focal length: a PINHOLE camera
-    with fy ≠ fx is reported, not reproduced.
+    Camera data: with ``sensor_fit='HORIZONTAL'`` the sensor width spans the image width
+    and Blender's shift is measured in image widths. COLMAP's pixel coordinates have the
+    origin at the top-left corner of the image (pixel centres at +0.5); Blender's shift
+    moves the optical axis from the image centre. fy ≠ fx needs non-square pixels:
+    ``pixel_aspect`` is the scene's (x, y) pixel aspect (both ≥ 1, as Blender requires),
+    whose ratio y/x stretches rows by fx/fy; vertical shift is in those stretched units.
     """
+    ycor = fx / fy
+    aspect = (1.0, ycor) if ycor >= 1.0 else (1.0 / ycor, 1.0)
     return {
         "type": "PERSP",
         "sensor_fit": "HORIZONTAL",
         "sensor_width": sensor_width,
         "lens": fx * sensor_width / width,
         "shift_x": (width / 2.0 - cx) / width,
-        "shift_y": (cy - height / 2.0) / width,
+        "shift_y": (cy - height / 2.0) * ycor / width,
+        "pixel_aspect": aspect,
     }
 
 

@@ -36,12 +36,14 @@ def camera_resolution(cam_obj: bpy.types.Object) -> tuple[int, int]:
 
 
 def use_camera(scene: bpy.types.Scene, cam_obj: bpy.types.Object) -> None:
-    """Make an imported camera the scene camera with its image's resolution."""
+    """Make an imported camera the scene camera with its image's resolution (and pixel
+    aspect, for cameras with fy ≠ fx)."""
     scene.camera = cam_obj
     if "promptgs_width" in cam_obj.data:
         scene.render.resolution_x, scene.render.resolution_y = camera_resolution(cam_obj)
         scene.render.resolution_percentage = 100
-        scene.render.pixel_aspect_x = scene.render.pixel_aspect_y = 1.0
+        aspect = cam_obj.data.get("promptgs_pixel_aspect", (1.0, 1.0))
+        scene.render.pixel_aspect_x, scene.render.pixel_aspect_y = float(aspect[0]), float(aspect[1])
 
 
 def import_colmap(context, dataset: str, images: str = "images", backgrounds: bool = False,
@@ -60,10 +62,6 @@ def import_colmap(context, dataset: str, images: str = "images", backgrounds: bo
         warnings.append(problem)
     notes = sorted({c.distortion_note() for c in model.cameras.values()} - {""})
     warnings += notes
-    for cam in model.cameras.values():
-        fx, fy, _, _ = cam.pinhole()
-        if abs(fx - fy) > 1e-6 * fx:
-            warnings.append(f"camera {cam.id}: fy ≠ fx ({fy:.2f} vs {fx:.2f}); Blender uses fx")
 
     scene = context.scene
     collection = bpy.data.collections.new(f"PromptGS {dataset_path.name}")
@@ -89,7 +87,9 @@ def import_colmap(context, dataset: str, images: str = "images", backgrounds: bo
         width, height = cam.width, cam.height  # the model's size; a downscaled image folder keeps the ratios
         path = folder / image.name
         data = bpy.data.cameras.new(image.name)
-        for key, value in coords.blender_camera_settings(width, height, fx, fy, cx, cy).items():
+        settings = coords.blender_camera_settings(width, height, fx, fy, cx, cy)
+        data["promptgs_pixel_aspect"] = settings.pop("pixel_aspect")
+        for key, value in settings.items():
             setattr(data, key, value)
         data.display_size = 0.2
         data["promptgs_width"], data["promptgs_height"] = width, height

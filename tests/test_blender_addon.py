@@ -47,6 +47,31 @@ def projections(tumbler: Path, n_cameras: int = 6, n_points: int = 5) -> list[di
     return out
 
 
+def pinhole_dataset(folder: Path) -> list[dict]:
+    """A small text model with PINHOLE cameras whose fy ≠ fx; returns pycolmap's projections."""
+    pycolmap = pytest.importorskip("pycolmap")
+    from promptgs_blender import coords
+
+    sparse = folder / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.txt").write_text("1 PINHOLE 640 480 500 520 330.5 250.25\n2 PINHOLE 640 480 520 480 300 260\n")
+    rng = np.random.default_rng(7)
+    lines = []
+    for i in range(4):
+        q = coords.rotmat_to_quat(coords.quat_to_rotmat(rng.normal(size=4)))
+        lines += [f"{i + 1} {' '.join(map(str, q))} 0.1 -0.2 5.0 {i % 2 + 1} pin_{i}.png", ""]
+    (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+    points = rng.normal(scale=0.7, size=(40, 3))
+    (sparse / "points3D.txt").write_text("".join(f"{j + 1} {p[0]} {p[1]} {p[2]} 200 100 50 0.5\n"
+                                                 for j, p in enumerate(points)))
+    rec = pycolmap.Reconstruction(str(sparse))
+    out = []
+    for image in rec.images.values():
+        for point in points[:8]:
+            out.append({"image": image.name, "point": point.tolist(), "uv": np.asarray(image.project_point(point)).tolist()})
+    return out
+
+
 def prepare(tmp: Path, shared_data: Path) -> Path:
     """Build the zip, write the fake trainer wrapper and the config; returns the config path."""
     import build_extension
@@ -57,7 +82,8 @@ def prepare(tmp: Path, shared_data: Path) -> Path:
     fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
     config = {"zip": str(zip_path), "tmp": str(tmp), "tumbler": str(shared_data / "tumbler"),
               "fern": str(shared_data / "fern"), "fake_python": str(fake),
-              "projections": projections(shared_data / "tumbler")}
+              "projections": projections(shared_data / "tumbler"),
+              "pinhole": str(tmp / "pinhole"), "pinhole_projections": pinhole_dataset(tmp / "pinhole")}
     (tmp / "config.json").write_text(json.dumps(config))
     (tmp / "home").mkdir()
     return tmp / "config.json"
@@ -75,7 +101,7 @@ def results(tmp_path_factory, shared_data):
     return json.loads((tmp / "results.json").read_text())
 
 
-CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap", "root_puts_capture_upright",
+CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap", "root_puts_capture_upright", "non_square_pixels_project_exactly",
           "import_fern_reports_distortion", "prompt_cube_box_in_job_file", "prompt_around_selected_points",
           "train_with_recorded_events_updates_objects", "cancel_keeps_last_snapshot",
           "crashed_trainer_shows_error_lines", "wrong_trainer_path_is_a_clear_error",

@@ -110,14 +110,34 @@ def test_projection_through_blender_camera_settings(shared_data):
         cam_matrix = coords.colmap_camera_to_blender(image.qvec, image.tvec)
         for point in model.points[:50]:
             local = np.linalg.inv(cam_matrix) @ np.append(point, 1.0)
-            # Blender: frame half-width 0.5 * sensor / lens at depth 1, shifted by shift * width
-            x, y, depth = local[0], local[1], -local[2]
-            scale = s["lens"] / s["sensor_width"]
-            u_frac = x / depth * scale + 0.5 - s["shift_x"]
-            v_frac = y / depth * scale + 0.5 * cam.height / cam.width - s["shift_y"]
-            uv = np.array([u_frac * cam.width, cam.height - v_frac * cam.width])
+            uv = _blender_pixel(local, s, cam.width, cam.height)
             expected = coords.project_colmap(point, image.qvec, image.tvec, fx, fy, cx, cy)
             np.testing.assert_allclose(uv, expected, atol=1e-6)
+
+
+def _blender_pixel(local, s: dict, width: int, height: int) -> np.ndarray:
+    """Pixel of a camera-local point the way Blender's view plane maps it (horizontal fit):
+    view-plane units are image widths; rows are stretched by ycor = aspect_y / aspect_x."""
+    x, y, depth = local[0], local[1], -local[2]
+    ycor = s["pixel_aspect"][1] / s["pixel_aspect"][0]
+    scale = s["lens"] / s["sensor_width"] * width
+    column = x / depth * scale + 0.5 * width - s["shift_x"] * width
+    row_up = (y / depth * scale + 0.5 * ycor * height - s["shift_y"] * width) / ycor
+    return np.array([column, height - row_up])
+
+
+@pytest.mark.parametrize("fy", [500.0, 520.0, 470.0])
+def test_non_square_pixels(fy):
+    s = coords.blender_camera_settings(640, 480, 500.0, fy, 330.5, 250.25)
+    assert min(s["pixel_aspect"]) == 1.0
+    rng = np.random.default_rng(0)
+    q = coords.rotmat_to_quat(coords.quat_to_rotmat(rng.normal(size=4)))
+    t = np.array([0.1, -0.2, 4.0])
+    cam_matrix = coords.colmap_camera_to_blender(q, t)
+    for point in rng.normal(size=(20, 3)):
+        local = np.linalg.inv(cam_matrix) @ np.append(point, 1.0)
+        expected = coords.project_colmap(point, q, t, 500.0, fy, 330.5, 250.25)
+        np.testing.assert_allclose(_blender_pixel(local, s, 640, 480), expected, atol=1e-6)
 
 
 def test_dataset_to_blender_puts_up_on_z():

@@ -75,6 +75,26 @@ def root_puts_capture_upright():
 
 
 @check
+def non_square_pixels_project_exactly():
+    tumbler_root = scene().promptgs.root
+    bpy.ops.promptgs.import_colmap(directory=config["pinhole"], up="+Z")
+    root = scene().promptgs.root
+    errors = []
+    for item in config["pinhole_projections"]:
+        cam = bpy.data.objects[item["image"]]
+        bpy.ops.promptgs.use_camera(name=cam.name)
+        width, height = scene().render.resolution_x, scene().render.resolution_y
+        ndc = world_to_camera_view(scene(), cam, root.matrix_world @ Vector(item["point"]))
+        uv = np.array([ndc.x * width, (1.0 - ndc.y) * height])
+        errors.append(float(np.abs(uv - np.array(item["uv"])).max()))
+    aspect = (scene().render.pixel_aspect_x, scene().render.pixel_aspect_y)
+    scene().promptgs.root = tumbler_root
+    scene().promptgs.images = "images_4"
+    assert max(errors) < 0.5, max(errors)
+    return {"max_error_px": max(errors), "last_pixel_aspect": aspect}
+
+
+@check
 def import_fern_reports_distortion():
     before = set(bpy.data.objects.keys())
     bpy.ops.promptgs.import_colmap(directory=config["fern"], backgrounds=True)
