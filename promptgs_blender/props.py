@@ -101,7 +101,9 @@ class PromptGSSettings(bpy.types.PropertyGroup):
         ("SPHERES", "Spheres", "Small spheres coloured in every shading mode (slow for many points)"),
         ("POINTS", "Points", "Point-cloud points, fast; colours in Material Preview and Rendered")])
     dataset_preset: EnumProperty(name="Preset", default="small", items=[
-        ("small", "Small", ""), ("medium", "Medium", ""), ("large", "Large", "")])
+        ("tiny", "Tiny", "A few low-resolution views, for a quick look"),
+        ("small", "Small", "A small dataset (minutes to render on a CPU)"),
+        ("paper", "Paper", "The full-size dataset (long)")])
     dataset_out: StringProperty(name="Output", subtype="DIR_PATH", default="")
 
 
@@ -132,6 +134,7 @@ class PromptGSRunState(bpy.types.PropertyGroup):
     dataset_status: EnumProperty(name="Dataset job", default="IDLE", items=[
         (s, s.title(), "") for s in ("IDLE", "RUNNING", "DONE", "ERROR")])
     dataset_message: StringProperty()
+    dataset_out: StringProperty()
 
 
 CLASSES = (PromptGSPreferences, PromptGSSettings, PromptGSRunState)

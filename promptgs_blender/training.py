@@ -299,6 +299,7 @@ def start_dataset_job(context, out: Path, preset: str, seed: int) -> TrainerRun:
         state.dataset_status, state.dataset_message = "ERROR", str(exc)
         raise UserError(str(exc)) from None
     state.dataset_status, state.dataset_message = "RUNNING", f"Generating into {out}…"
+    state.dataset_out = str(out)
     _dataset_job = run
     if not bpy.app.background and not bpy.app.timers.is_registered(_timer):
         bpy.app.timers.register(_timer, first_interval=0.5)

@@ -42,6 +42,9 @@ class PROMPTGS_PT_dataset(PromptGSPanel, bpy.types.Panel):
         state = context.window_manager.promptgs_run
         if state.dataset_status != "IDLE":
             layout.label(text=state.dataset_message, icon="ERROR" if state.dataset_status == "ERROR" else "INFO")
+        if state.dataset_status == "DONE" and state.dataset_out:
+            op = layout.operator("promptgs.import_colmap", text="Import Generated Dataset", icon="IMPORT")
+            op.directory = state.dataset_out
 
 
 class PROMPTGS_PT_prompts(PromptGSPanel, bpy.types.Panel):

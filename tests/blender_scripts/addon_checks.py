@@ -303,6 +303,26 @@ def dataset_without_images_is_a_clear_error():
 
 
 @check
+def dataset_generation_runs_in_background():
+    training = addon("training")
+    fake_trainer("ok")
+    scene().promptgs.dataset_out = str(TMP / "generated")
+    scene().promptgs.dataset_preset = "tiny"
+    bpy.ops.promptgs.generate_dataset()
+    assert state().dataset_status == "RUNNING"
+    run_until_idle(60)
+    assert state().dataset_status == "DONE", state().dataset_message
+    argv = (TMP / "generated" / "done").read_text().split()
+    assert argv[argv.index("dataset"):][:4] == ["dataset", "mountain", "--preset", "tiny"], argv
+    fake_trainer("crash")
+    bpy.ops.promptgs.generate_dataset()
+    run_until_idle(60)
+    assert state().dataset_status == "ERROR"
+    assert state().dataset_message == "promptgs: error: --preset tiny: cannot find a blender binary"
+    return {"argv": argv}
+
+
+@check
 def load_result_reads_3dgs_ply():
     rng = np.random.default_rng(3)
     n = 500

@@ -41,8 +41,21 @@ def snapshot(out: Path, step: int, n: int, seed: int) -> Path:
     return path
 
 
+def dataset(argv, mode):
+    """``promptgs dataset mountain``: a few progress lines, or one error line."""
+    if mode == "crash":
+        print("promptgs: error: --preset tiny: cannot find a blender binary", file=sys.stderr)
+        sys.exit(2)
+    out = Path(argv[argv.index("--out") + 1])
+    for i in range(3):
+        print(f"rendering view {i + 1}/3", flush=True)
+    (out / "done").write_text(" ".join(argv))
+
+
 def main(argv):
     mode = os.environ.get("FAKE_TRAINER_MODE", "ok")
+    if "dataset" in argv:
+        return dataset(argv, mode)
     out = Path(argv[argv.index("--out") + 1])
     job = json.loads(Path(argv[argv.index("--job") + 1]).read_text()) if "--job" in argv else {}
     iterations = int(job.get("iterations", 30))
