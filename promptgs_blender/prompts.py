@@ -74,7 +74,10 @@ def prompt_file(scene: bpy.types.Scene, root: bpy.types.Object | None) -> dict:
     for obj in prompt_objects(scene):
         if not obj.promptgs_enabled:
             continue
-        box = coords.prompt_box(np.array(to_dataset @ obj.matrix_world), obj.empty_display_size)
+        try:
+            box = coords.prompt_box(np.array(to_dataset @ obj.matrix_world), obj.empty_display_size)
+        except ValueError as exc:
+            raise ValueError(f"prompt '{obj.name}': {exc}") from None
         box["weight"] = float(obj.promptgs_weight)
         out.append(box)
     return {"prompts": out}

@@ -86,6 +86,8 @@ class PromptGSSettings(bpy.types.PropertyGroup):
         ("FULL", "Full", "30,000 steps"), ("CUSTOM", "Custom", "Set the steps yourself")])
     iterations: IntProperty(name="Steps", default=7000, min=1)
     budget: IntProperty(name="Budget", default=0, min=0, description="Maximum number of Gaussians (0: no limit)")
+    auto_prompts: IntProperty(name="Auto Prompts", default=0, min=0,
+                              description="Also add the error field's top N proposals as prompts (0: off)")
     backend: EnumProperty(name="Device", default="PREFS", items=[
         ("PREFS", "Default", "The default device of the preferences"), ("auto", "Auto", ""),
         ("cpu", "CPU", ""), ("cuda", "CUDA", "")])

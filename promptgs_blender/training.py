@@ -92,6 +92,8 @@ def build_job(context, out: Path) -> dict:
     }
     if settings.budget:
         job["budget"] = settings.budget
+    if settings.auto_prompts:
+        job["auto_prompts"] = settings.auto_prompts
     return job
 
 
@@ -140,7 +142,7 @@ def start_training(context) -> TrainerRun:
         run = TrainerRun(argv, out / "trainer_stderr.log", out=out)
         state.log_path = str(run.log_path)
         run.start()
-    except (UserError, TrainerError, OSError) as exc:
+    except (UserError, TrainerError, OSError, ValueError) as exc:
         fail(state, str(exc))
     state.status = "STARTING"
     state.iterations = job["iterations"]

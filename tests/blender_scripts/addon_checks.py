@@ -163,8 +163,17 @@ def prompt_cube_box_in_job_file():
     for key in ("dataset", "out", "images", "iterations", "strategy", "backend", "snapshot_every", "seed"):
         assert key in job, key
     assert job["images"] == "images_4" and Path(job["dataset"]).name == "tumbler"
+    assert "budget" not in job and "auto_prompts" not in job  # 0 = off
+    # a flat cube is a clear error in the panel, not a traceback
+    off.promptgs_enabled = True
+    off.scale = (1.0, 0.0, 1.0)
+    try:
+        bpy.ops.promptgs.train()
+    except RuntimeError:
+        pass
+    assert state().status == "ERROR" and f"prompt '{off.name}'" in state().message, state().message
     bpy.data.objects.remove(off)
-    return {"box": box, "corner_error": worst}
+    return {"box": box, "corner_error": worst, "flat_message": state().message}
 
 
 @check
