@@ -1,10 +1,14 @@
 // Forward pass of the CPU rasterizer: tile binning, depth sort, front-to-back compositing.
+//
+// Inside a tile the loops run Gaussian by Gaussian (front to back) and, for each one, over
+// the tile rows its box touches, with the 16 pixels of a row as one vector.
 #include <omp.h>
 
 #include <algorithm>
 #include <cmath>
 
 #include "rasterize.h"
+#include "simd_clones.h"
 
 namespace promptgs {
 
@@ -18,42 +22,128 @@ inline uint32_t float_key(float f) {
 }
 
 struct TileRect {
-    int16_t x0, y0, x1, y1;  // tiles [x0, x1) x [y0, y1)
+    int32_t x0, y0, x1, y1;  // tiles [x0, x1) x [y0, y1)
 };
+
+PROMPTGS_SIMD_CLONES
+void forward_tile(const Splat* __restrict splats, const float* __restrict colors, int64_t D,
+                  const int32_t* __restrict ids, int start, int end, int x0, int y0, int rows, int cols,
+                  const float* __restrict background, int W, float* __restrict acc, float* __restrict out_colors,
+                  float* __restrict out_alphas, int32_t* __restrict last_ids) {
+    alignas(64) float T[kTilePixels];
+    alignas(64) int32_t active[kTilePixels];  // -1 while the pixel still composites, else 0
+    alignas(64) int32_t last[kTilePixels];
+    RowF px;
+    for (int l = 0; l < kTile; ++l) px[l] = static_cast<float>(x0 + l) + 0.5f;
+    std::fill(acc, acc + D * kTilePixels, 0.f);
+    for (int p = 0; p < kTilePixels; ++p) {
+        T[p] = 1.f;
+        last[p] = -1;
+        active[p] = ((p / kTile) < rows && (p % kTile) < cols) ? -1 : 0;
+    }
+    int alive = rows * cols;
+    for (int i = start; i < end && alive > 0; ++i) {
+        const int32_t g = ids[i];
+        const Splat s = splats[g];
+        const int r0 = std::max(0, static_cast<int>(std::floor(s.y - s.ry - 0.5f)) - y0);
+        const int r1 = std::min(rows - 1, static_cast<int>(std::ceil(s.y + s.ry)) - y0);
+        const float* cg = colors + static_cast<int64_t>(g) * D;
+        const RowF dx = s.x - px;
+        const RowF adx = 0.5f * s.a * dx;
+        for (int r = r0; r <= r1; ++r) {
+            const float dy = s.y - (static_cast<float>(y0 + r) + 0.5f);
+            const RowF sigma = (adx + s.b * dy) * dx + 0.5f * s.c * dy * dy;
+            const RowF alpha = min_f(s.opacity * exp_row(-sigma), kMaxAlpha);
+            const RowF t = load_f(T + r * kTile);
+            const RowF nt = t - t * alpha;
+            const RowI ok = (sigma >= 0.f) & (alpha >= kAlphaThreshold) & load_i(active + r * kTile);
+            const RowI use = ok & (nt > kTransmittanceEps);
+            const RowI stop = ok & (nt <= kTransmittanceEps);
+            // lane counts of composited (low half) and finished (high half) pixels
+            const int32_t counts = hsum_i((use & 1) | (stop & 0x10000));
+            if (counts == 0) continue;
+            alive -= counts >> 16;
+            store_f(T + r * kTile, select(use, nt, t));
+            store_i(last + r * kTile, use ? splat_i(i) : load_i(last + r * kTile));
+            store_i(active + r * kTile, load_i(active + r * kTile) & ~stop);
+            if ((counts & 0xffff) == 0) continue;
+            const RowF w = select(use, alpha * t, splat_f(0.f));
+            for (int64_t k = 0; k < D; ++k) {
+                float* A = acc + k * kTilePixels + r * kTile;
+                store_f(A, load_f(A) + cg[k] * w);
+            }
+        }
+    }
+    for (int r = 0; r < rows; ++r) {
+        for (int l = 0; l < cols; ++l) {
+            const int p = r * kTile + l;
+            const int64_t pix = static_cast<int64_t>(y0 + r) * W + (x0 + l);
+            for (int64_t k = 0; k < D; ++k)
+                out_colors[pix * D + k] = acc[k * kTilePixels + p] + (background ? T[p] * background[k] : 0.f);
+            out_alphas[pix] = 1.f - T[p];
+            last_ids[pix] = last[p];
+        }
+    }
+}
 
 }  // namespace
 
-TileBins bin_gaussians(const float* means2d, const int32_t* radii, const float* depths, int64_t n,
-                       int width, int height) {
+void gather_sorted(const RasterInputs& in, const TileBins& bins, std::vector<Splat>& splats,
+                   std::vector<float>& colors) {
+    const int64_t M = static_cast<int64_t>(bins.order.size());
+    const int64_t D = in.d;
+    splats.resize(static_cast<size_t>(M));
+    colors.resize(static_cast<size_t>(M * D));
+#pragma omp parallel for schedule(static)
+    for (int64_t j = 0; j < M; ++j) {
+        const int64_t i = bins.order[j];
+        Splat s;
+        s.x = in.means2d[2 * i];
+        s.y = in.means2d[2 * i + 1];
+        s.a = in.conics[3 * i];
+        s.b = in.conics[3 * i + 1];
+        s.c = in.conics[3 * i + 2];
+        s.opacity = in.opacities[i];
+        s.ry = static_cast<float>(in.radii[2 * i + 1]);
+        s.pad = 0.f;
+        splats[j] = s;
+        for (int64_t k = 0; k < D; ++k) colors[j * D + k] = in.colors[i * D + k];
+    }
+}
+
+TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
     TileBins bins;
-    bins.tiles_x = (width + kTile - 1) / kTile;
-    bins.tiles_y = (height + kTile - 1) / kTile;
+    bins.tiles_x = (in.width + kTile - 1) / kTile;
+    bins.tiles_y = (in.height + kTile - 1) / kTile;
     const int n_tiles = bins.tiles_x * bins.tiles_y;
+    const int32_t* radii = in.radii;
+    const float* m2 = in.means2d;
 
     // Visible Gaussians as (depth key, index), sorted front to back. Filling the tile
     // lists in this order leaves every list sorted without a per-tile sort.
     std::vector<uint64_t> keys;
-    keys.reserve(static_cast<size_t>(n));
-    for (int64_t i = 0; i < n; ++i) {
+    keys.reserve(static_cast<size_t>(in.n));
+    for (int64_t i = 0; i < in.n; ++i) {
         if (radii[2 * i] > 0 && radii[2 * i + 1] > 0) {
-            keys.push_back((static_cast<uint64_t>(float_key(depths[i])) << 32) |
-                           static_cast<uint32_t>(i));
+            keys.push_back((static_cast<uint64_t>(float_key(depths[i])) << 32) | static_cast<uint32_t>(i));
         }
     }
     std::sort(keys.begin(), keys.end());
 
     const size_t m = keys.size();
+    bins.order.resize(m);
     std::vector<TileRect> rects(m);
     std::vector<int32_t> counts(n_tiles + 1, 0);
     for (size_t j = 0; j < m; ++j) {
         const int64_t i = static_cast<int64_t>(keys[j] & 0xffffffffu);
-        const float x = means2d[2 * i], y = means2d[2 * i + 1];
+        bins.order[j] = static_cast<int32_t>(i);
+        const float x = m2[2 * i], y = m2[2 * i + 1];
         const float rx = static_cast<float>(radii[2 * i]), ry = static_cast<float>(radii[2 * i + 1]);
         TileRect r;
-        r.x0 = static_cast<int16_t>(std::clamp(static_cast<int>(std::floor((x - rx) / kTile)), 0, bins.tiles_x));
-        r.x1 = static_cast<int16_t>(std::clamp(static_cast<int>(std::ceil((x + rx) / kTile)), 0, bins.tiles_x));
-        r.y0 = static_cast<int16_t>(std::clamp(static_cast<int>(std::floor((y - ry) / kTile)), 0, bins.tiles_y));
-        r.y1 = static_cast<int16_t>(std::clamp(static_cast<int>(std::ceil((y + ry) / kTile)), 0, bins.tiles_y));
+        r.x0 = std::clamp(static_cast<int>(std::floor((x - rx) / kTile)), 0, bins.tiles_x);
+        r.x1 = std::clamp(static_cast<int>(std::ceil((x + rx) / kTile)), 0, bins.tiles_x);
+        r.y0 = std::clamp(static_cast<int>(std::floor((y - ry) / kTile)), 0, bins.tiles_y);
+        r.y1 = std::clamp(static_cast<int>(std::ceil((y + ry) / kTile)), 0, bins.tiles_y);
         rects[j] = r;
         for (int ty = r.y0; ty < r.y1; ++ty)
             for (int tx = r.x0; tx < r.x1; ++tx) counts[ty * bins.tiles_x + tx + 1]++;
@@ -63,142 +153,33 @@ TileBins bin_gaussians(const float* means2d, const int32_t* radii, const float* 
     bins.ids.resize(static_cast<size_t>(bins.offsets[n_tiles]));
     std::vector<int32_t> cursor(bins.offsets.begin(), bins.offsets.end() - 1);
     for (size_t j = 0; j < m; ++j) {
-        const int32_t i = static_cast<int32_t>(keys[j] & 0xffffffffu);
         const TileRect& r = rects[j];
         for (int ty = r.y0; ty < r.y1; ++ty)
-            for (int tx = r.x0; tx < r.x1; ++tx) bins.ids[cursor[ty * bins.tiles_x + tx]++] = i;
+            for (int tx = r.x0; tx < r.x1; ++tx) bins.ids[cursor[ty * bins.tiles_x + tx]++] = static_cast<int32_t>(j);
     }
     return bins;
 }
 
-std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics,
-                                             torch::Tensor colors, torch::Tensor opacities,
-                                             torch::Tensor depths, torch::Tensor radii,
-                                             torch::Tensor background, int64_t width,
-                                             int64_t height) {
-    const int64_t N = means2d.size(0);
-    const int64_t D = colors.size(1);
-    const int W = static_cast<int>(width), H = static_cast<int>(height);
-    const float* m2 = means2d.data_ptr<float>();
-    const float* cn = conics.data_ptr<float>();
-    const float* col = colors.data_ptr<float>();
-    const float* op = opacities.data_ptr<float>();
-    const int32_t* rad = radii.data_ptr<int32_t>();
-    const bool has_bg = background.numel() > 0;
-    const float* bg = has_bg ? background.data_ptr<float>() : nullptr;
-
-    TileBins bins = bin_gaussians(m2, rad, depths.data_ptr<float>(), N, W, H);
+void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_colors, float* out_alphas,
+                       int32_t* last_ids) {
+    std::vector<Splat> splats;
+    std::vector<float> colors;
+    gather_sorted(in, bins, splats, colors);
     const int n_tiles = bins.tiles_x * bins.tiles_y;
-
-    std::vector<Splat> splats(static_cast<size_t>(N));
-#pragma omp parallel for schedule(static)
-    for (int64_t i = 0; i < N; ++i) {
-        Splat s;
-        s.x = m2[2 * i];
-        s.y = m2[2 * i + 1];
-        s.a = cn[3 * i];
-        s.b = cn[3 * i + 1];
-        s.c = cn[3 * i + 2];
-        s.opacity = op[i];
-        s.ry = static_cast<float>(rad[2 * i + 1]);
-        s.pad = 0.f;
-        splats[i] = s;
-    }
-
-    auto fopts = torch::TensorOptions().dtype(torch::kFloat32);
-    torch::Tensor out_colors = torch::empty({H, W, D}, fopts);
-    torch::Tensor out_alphas = torch::empty({H, W, 1}, fopts);
-    torch::Tensor last_ids = torch::empty({H, W}, torch::TensorOptions().dtype(torch::kInt32));
-    float* oc = out_colors.data_ptr<float>();
-    float* oa = out_alphas.data_ptr<float>();
-    int32_t* ol = last_ids.data_ptr<int32_t>();
     const int32_t* ids = bins.ids.data();
     const int32_t* offs = bins.offsets.data();
-
 #pragma omp parallel
     {
-        std::vector<float> acc_v(static_cast<size_t>(D) * kTilePixels);
-        float* acc = acc_v.data();
-        alignas(64) float T[kTilePixels];
-        alignas(64) int32_t active[kTilePixels];
-        alignas(64) int32_t last[kTilePixels];
-        alignas(64) float w[kTile];
-
+        std::vector<float> acc(static_cast<size_t>(in.d) * kTilePixels);
 #pragma omp for schedule(dynamic, 1)
         for (int tile = 0; tile < n_tiles; ++tile) {
             const int x0 = (tile % bins.tiles_x) * kTile;
             const int y0 = (tile / bins.tiles_x) * kTile;
-            const int rows = std::min(kTile, H - y0);
-            const int cols = std::min(kTile, W - x0);
-            std::fill(acc, acc + D * kTilePixels, 0.f);
-            for (int p = 0; p < kTilePixels; ++p) {
-                T[p] = 1.f;
-                last[p] = -1;
-                active[p] = ((p / kTile) < rows && (p % kTile) < cols) ? 1 : 0;
-            }
-            int alive = rows * cols;
-            const int start = offs[tile], end = offs[tile + 1];
-            for (int i = start; i < end && alive > 0; ++i) {
-                const int32_t g = ids[i];
-                const Splat s = splats[g];
-                const int r0 = std::max(0, static_cast<int>(std::floor(s.y - s.ry - 0.5f)) - y0);
-                const int r1 = std::min(rows - 1, static_cast<int>(std::ceil(s.y + s.ry)) - y0);
-                const float* cg = col + static_cast<int64_t>(g) * D;
-                for (int r = r0; r <= r1; ++r) {
-                    const float dy = s.y - (static_cast<float>(y0 + r) + 0.5f);
-                    float* Tr = T + r * kTile;
-                    int32_t* ar = active + r * kTile;
-                    int32_t* lr = last + r * kTile;
-                    int n_stop = 0;
-                    float any = 0.f;
-#pragma omp simd reduction(+ : n_stop) reduction(+ : any)
-                    for (int l = 0; l < kTile; ++l) {
-                        const float dx = s.x - (static_cast<float>(x0 + l) + 0.5f);
-                        const float sigma = 0.5f * (s.a * dx * dx + s.c * dy * dy) + s.b * dx * dy;
-                        const float alpha = std::min(kMaxAlpha, s.opacity * fast_exp(-sigma));
-                        const bool ok = (sigma >= 0.f) & (alpha >= kAlphaThreshold) & (ar[l] != 0);
-                        const float t = Tr[l];
-                        const float nt = t * (1.f - alpha);
-                        const bool stop = ok & (nt <= kTransmittanceEps);
-                        const bool use = ok & !stop;
-                        const float wl = use ? alpha * t : 0.f;
-                        w[l] = wl;
-                        any += wl;
-                        Tr[l] = use ? nt : t;
-                        lr[l] = use ? i : lr[l];
-                        ar[l] = stop ? 0 : ar[l];
-                        n_stop += stop ? 1 : 0;
-                    }
-                    alive -= n_stop;
-                    if (any == 0.f) continue;
-                    for (int64_t k = 0; k < D; ++k) {
-                        const float ck = cg[k];
-                        float* A = acc + k * kTilePixels + r * kTile;
-#pragma omp simd
-                        for (int l = 0; l < kTile; ++l) A[l] += ck * w[l];
-                    }
-                }
-            }
-            for (int r = 0; r < rows; ++r) {
-                for (int l = 0; l < cols; ++l) {
-                    const int p = r * kTile + l;
-                    const int64_t pix = static_cast<int64_t>(y0 + r) * W + (x0 + l);
-                    for (int64_t k = 0; k < D; ++k)
-                        oc[pix * D + k] = acc[k * kTilePixels + p] + (has_bg ? T[p] * bg[k] : 0.f);
-                    oa[pix] = 1.f - T[p];
-                    ol[pix] = last[p];
-                }
-            }
+            forward_tile(splats.data(), colors.data(), in.d, ids, offs[tile], offs[tile + 1], x0, y0,
+                         std::min(kTile, in.height - y0), std::min(kTile, in.width - x0), in.background,
+                         in.width, acc.data(), out_colors, out_alphas, last_ids);
         }
     }
-
-    torch::Tensor tile_offsets = torch::from_blob(bins.offsets.data(), {n_tiles + 1},
-                                                  torch::TensorOptions().dtype(torch::kInt32))
-                                     .clone();
-    torch::Tensor tile_ids = torch::from_blob(bins.ids.data(), {static_cast<int64_t>(bins.ids.size())},
-                                              torch::TensorOptions().dtype(torch::kInt32))
-                                 .clone();
-    return {out_colors, out_alphas, last_ids, tile_offsets, tile_ids};
 }
 
 }  // namespace promptgs
