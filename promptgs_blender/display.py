@@ -7,7 +7,10 @@ same. The "PromptGS Points" node group draws the points either as point-cloud po
 to evaluate, so only for small sets). Colour: the ``display_color`` attribute (the chosen
 attribute through a colour map, or the RGB colour) read by the "PromptGS Display"
 material in Material Preview and Rendered shading; for Workbench, which ignores
-attributes, spheres also get one of 16 colour-map materials from ``display_bin``.
+attributes, spheres also get one of 16 colour-map materials per palette from
+``display_bin``. Points
+whose colour-map value ``display_value`` (0..1) is below the modifier's "Min Value" are
+not drawn (the loss field shows its high-loss voxels only).
 """
 
 from __future__ import annotations
@@ -17,26 +20,34 @@ import numpy as np
 
 N_BINS = 16
 NODE_GROUP = "PromptGS Points"
+NODE_GROUP_VERSION = 2  # bump when the group changes; older groups are rebuilt
 DISPLAY_MATERIAL = "PromptGS Display"
 SPHERES_UP_TO = 50_000  # "auto" style: spheres up to this many points, plain points above
-# a perceptual dark-blue → green → yellow ramp (control points, linear RGB)
-_RAMP = np.array([[0.07, 0.02, 0.20], [0.10, 0.20, 0.55], [0.05, 0.45, 0.50],
-                  [0.20, 0.70, 0.25], [0.80, 0.85, 0.10], [1.00, 0.95, 0.35]])
+# colour ramps (control points, linear RGB): 0 dark blue → green → yellow (Gaussians),
+# 1 dark red → orange → pale yellow (the loss field)
+PALETTES = (
+    np.array([[0.07, 0.02, 0.20], [0.10, 0.20, 0.55], [0.05, 0.45, 0.50],
+              [0.20, 0.70, 0.25], [0.80, 0.85, 0.10], [1.00, 0.95, 0.35]]),
+    np.array([[0.25, 0.01, 0.01], [0.60, 0.03, 0.02], [0.90, 0.20, 0.02],
+              [1.00, 0.50, 0.05], [1.00, 0.80, 0.30], [1.00, 1.00, 0.80]]),
+)
 
 
-def colormap(t: np.ndarray) -> np.ndarray:
-    """RGB of values in [0, 1] on the ramp."""
+def colormap(t: np.ndarray, palette: int = 0) -> np.ndarray:
+    """RGB of values in [0, 1] on a ramp."""
+    ramp = PALETTES[palette]
     t = np.clip(np.asarray(t, np.float64), 0.0, 1.0)
-    x = np.linspace(0.0, 1.0, len(_RAMP))
-    return np.stack([np.interp(t, x, _RAMP[:, c]) for c in range(3)], axis=-1)
+    x = np.linspace(0.0, 1.0, len(ramp))
+    return np.stack([np.interp(t, x, ramp[:, c]) for c in range(3)], axis=-1)
 
 
 def bin_material(index: int) -> bpy.types.Material:
+    """Material of ``display_bin`` ``index``: palette ``index // N_BINS``, step ``index % N_BINS``."""
     name = f"PromptGS Map {index:02d}"
     mat = bpy.data.materials.get(name)
     if mat is None:
         mat = bpy.data.materials.new(name)
-        rgb = colormap((index + 0.5) / N_BINS)
+        rgb = colormap((index % N_BINS + 0.5) / N_BINS, index // N_BINS)
         mat.diffuse_color = (*rgb, 1.0)
         mat.use_nodes = True
         tree = mat.node_tree
@@ -69,26 +80,45 @@ def node_group() -> bpy.types.NodeTree:
     """The shared geometry-nodes group (inputs: Geometry, Radius, Spheres)."""
     group = bpy.data.node_groups.get(NODE_GROUP)
     if group is not None:
-        return group
+        if group.get("promptgs_version") == NODE_GROUP_VERSION:
+            return group
+        bpy.data.node_groups.remove(group)  # from an older version of the add-on
     group = bpy.data.node_groups.new(NODE_GROUP, "GeometryNodeTree")
+    group["promptgs_version"] = NODE_GROUP_VERSION
     face = group.interface
     face.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
     radius = face.new_socket("Radius", in_out="INPUT", socket_type="NodeSocketFloat")
     radius.default_value, radius.min_value = 0.01, 0.0
     spheres = face.new_socket("Spheres", in_out="INPUT", socket_type="NodeSocketBool")
     spheres.default_value = True
+    cutoff = face.new_socket("Min Value", in_out="INPUT", socket_type="NodeSocketFloat")
+    cutoff.default_value, cutoff.min_value, cutoff.max_value = 0.0, 0.0, 1.0
     face.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
     nodes, links = group.nodes, group.links
     g_in, g_out = nodes.new("NodeGroupInput"), nodes.new("NodeGroupOutput")
 
+    # hide points whose colour-map value (0..1) is below "Min Value"
+    value = nodes.new("GeometryNodeInputNamedAttribute")
+    value.data_type = "FLOAT"
+    value.inputs["Name"].default_value = "display_value"
+    below = nodes.new("FunctionNodeCompare")
+    below.data_type, below.operation = "FLOAT", "LESS_THAN"
+    links.new(value.outputs["Attribute"], below.inputs[0])
+    links.new(g_in.outputs["Min Value"], below.inputs[1])
+    delete = nodes.new("GeometryNodeDeleteGeometry")
+    delete.domain = "POINT"
+    links.new(g_in.outputs["Geometry"], delete.inputs["Geometry"])
+    links.new(below.outputs["Result"], delete.inputs["Selection"])
+    source = delete.outputs["Geometry"]
+
     to_points = nodes.new("GeometryNodeMeshToPoints")
-    links.new(g_in.outputs["Geometry"], to_points.inputs["Mesh"])
+    links.new(source, to_points.inputs["Mesh"])
     links.new(g_in.outputs["Radius"], to_points.inputs["Radius"])
     ico = nodes.new("GeometryNodeMeshIcoSphere")
     ico.inputs["Subdivisions"].default_value = 1
     links.new(g_in.outputs["Radius"], ico.inputs["Radius"])
     instance = nodes.new("GeometryNodeInstanceOnPoints")
-    links.new(g_in.outputs["Geometry"], instance.inputs["Points"])
+    links.new(source, instance.inputs["Points"])
     links.new(ico.outputs["Mesh"], instance.inputs["Instance"])
     realize = nodes.new("GeometryNodeRealizeInstances")
     links.new(instance.outputs["Instances"], realize.inputs["Geometry"])
@@ -105,7 +135,7 @@ def node_group() -> bpy.types.NodeTree:
     bins = nodes.new("GeometryNodeInputNamedAttribute")
     bins.data_type = "INT"
     bins.inputs["Name"].default_value = "display_bin"
-    for k in range(N_BINS):
+    for k in range(N_BINS * len(PALETTES)):
         equal = nodes.new("FunctionNodeCompare")
         equal.data_type, equal.operation = "INT", "EQUAL"
         links.new(bins.outputs["Attribute"], equal.inputs[2])
@@ -137,10 +167,14 @@ def use_spheres(style: str, n: int) -> bool:
     return style == "SPHERES" or (style == "AUTO" and n <= SPHERES_UP_TO)
 
 
-def set_style(obj: bpy.types.Object, radius: float | None = None, spheres: bool | None = None) -> None:
+def set_style(obj: bpy.types.Object, radius: float | None = None, spheres: bool | None = None,
+              min_value: float | None = None) -> None:
+    """Set the display modifier's inputs (None: leave as is)."""
     mod = obj.modifiers.get("PromptGS Display")
     if mod is None:
         return
+    if min_value is not None:
+        mod[_socket_id(mod.node_group, "Min Value")] = float(min_value)
     if radius is not None:
         mod[_socket_id(mod.node_group, "Radius")] = float(radius)
     if spheres is not None:
@@ -221,11 +255,12 @@ def get_attribute(obj: bpy.types.Object, name: str) -> np.ndarray:
     return out if width == 1 else out.reshape(n, width)
 
 
-def color_by(obj: bpy.types.Object, name: str) -> None:
+def color_by(obj: bpy.types.Object, name: str, palette: int = 0) -> None:
     """Colour the points by one attribute: colour-map bins, or RGB for ``color``."""
     mesh = obj.data
     n = len(mesh.vertices)
     note = ""
+    t = np.ones(n)
     if name == "color" or name not in mesh.attributes:
         bins = np.full(n, -1, np.int32)
         note = "" if name == "color" else f"no '{name}' attribute: RGB colours"
@@ -246,8 +281,9 @@ def color_by(obj: bpy.types.Object, name: str) -> None:
     elif name == "color" or name not in mesh.attributes:
         rgb = np.full((n, 3), 0.6)
     else:
-        rgb = colormap((bins + 0.5) / N_BINS)
-    set_points(obj, None, {"display_color": rgb})
+        rgb = colormap((bins + 0.5) / N_BINS, palette)
+        bins = bins + palette * N_BINS
+    set_points(obj, None, {"display_color": rgb, "display_value": np.clip(t, 0.0, 1.0).astype(np.float32)})
     set_points_attribute(obj, "display_bin", bins)
     obj["promptgs_color_by"] = name
 
@@ -258,3 +294,15 @@ def set_points_attribute(obj: bpy.types.Object, name: str, values: np.ndarray) -
     attr = mesh.attributes.get(name) or mesh.attributes.new(name, data_type, "POINT")
     attr.data.foreach_set(prop, np.ascontiguousarray(values).ravel())
     mesh.update()
+
+
+def grid_step(centers: np.ndarray) -> float:
+    """The spacing of points on a regular grid (e.g. voxel centres); 0 when unknown."""
+    steps = []
+    for axis in range(3):
+        values = np.unique(np.round(np.asarray(centers, np.float64)[:, axis], 6))
+        diffs = np.diff(values)
+        diffs = diffs[diffs > 1e-9]
+        if len(diffs):
+            steps.append(float(diffs.min()))
+    return min(steps) if steps else 0.0

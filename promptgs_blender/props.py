@@ -62,12 +62,16 @@ def _recolor(self, context):
 
 def _restyle(self, context):
     from . import display
+    from . import training
     settings = context.scene.promptgs
-    for name in ("PromptGS Gaussians", "PromptGS Loss Field"):
-        obj = bpy.data.objects.get(name)
-        if obj is not None:
-            display.set_style(obj, radius=settings.point_radius * (3.0 if "Loss" in name else 1.0),
-                              spheres=display.use_spheres(settings.display_style, len(obj.data.vertices)))
+    obj = bpy.data.objects.get(training.GAUSSIANS)
+    if obj is not None and obj.type == "MESH":
+        display.set_style(obj, radius=settings.point_radius,
+                          spheres=display.use_spheres(settings.display_style, len(obj.data.vertices)))
+    obj = bpy.data.objects.get(training.LOSS_FIELD)
+    if obj is not None and obj.type == "MESH":
+        display.set_style(obj, radius=training.field_radius(obj, settings), min_value=settings.field_cutoff,
+                          spheres=display.use_spheres(settings.display_style, len(obj.data.vertices)))
 
 
 class PromptGSSettings(bpy.types.PropertyGroup):
@@ -98,6 +102,9 @@ class PromptGSSettings(bpy.types.PropertyGroup):
                            update=_recolor)
     point_radius: FloatProperty(name="Point Size", default=0.01, min=0.0, precision=4,
                                 update=_restyle)
+    field_cutoff: FloatProperty(name="Field Cutoff", default=0.5, min=0.0, max=1.0, subtype="FACTOR",
+                                update=_restyle,
+                                description="Draw only loss-field voxels above this fraction of the loss range")
     display_style: EnumProperty(name="Draw As", default="AUTO", update=_restyle, items=[
         ("AUTO", "Auto", "Spheres up to 50,000 points, plain points above"),
         ("SPHERES", "Spheres", "Small spheres coloured in every shading mode (slow for many points)"),

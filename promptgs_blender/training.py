@@ -256,9 +256,19 @@ def show_loss_field(context, centers: np.ndarray, loss: np.ndarray, attention: n
     obj = display.points_object(LOSS_FIELD, _results_collection(context), settings.root,
                                 radius=settings.point_radius * 3.0, spheres=True)
     display.set_points(obj, centers, {"loss": loss, "attention": attention})
-    display.set_style(obj, spheres=display.use_spheres(settings.display_style, len(centers)))
-    display.color_by(obj, "loss")
+    step = display.grid_step(centers)
+    if step > 0:
+        obj["promptgs_voxel_size"] = step
+    display.set_style(obj, radius=field_radius(obj, settings), min_value=settings.field_cutoff,
+                      spheres=display.use_spheres(settings.display_style, len(centers)))
+    display.color_by(obj, "loss", palette=1)
     return obj
+
+
+def field_radius(obj: bpy.types.Object, settings) -> float:
+    """Loss-field dots: a quarter of the voxel size (three Gaussian dots when unknown)."""
+    voxel = obj.get("promptgs_voxel_size", 0.0)
+    return 0.25 * voxel if voxel > 0 else 3.0 * settings.point_radius
 
 
 def apply_snapshot(context, path: Path) -> bpy.types.Object:

@@ -128,6 +128,7 @@ class PROMPTGS_PT_display(PromptGSPanel, bpy.types.Panel):
             layout.label(text=obj["promptgs_color_note"], icon="INFO")
         layout.prop(settings, "display_style")
         layout.prop(settings, "point_radius")
+        layout.prop(settings, "field_cutoff")
         layout.operator("promptgs.load_result", text="Load PLY…", icon="FILE")
 
 

@@ -428,7 +428,20 @@ def display_settings_apply():
     np.testing.assert_allclose(rgb, display.get_attribute(obj, "color")[:, :3], atol=1e-6)
     settings.display_style = "AUTO"
     settings.color_by = "error"
-    return {}
+    # the loss field: a quarter-voxel radius and only the voxels above the cutoff
+    field = bpy.data.objects["PromptGS Loss Field"]
+    fmod = field.modifiers["PromptGS Display"]
+    settings.field_cutoff = 0.75
+    assert abs(fmod[display._socket_id(fmod.node_group, "Min Value")] - 0.75) < 1e-6
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    shown = field.evaluated_get(depsgraph).data
+    value = display.get_attribute(field, "display_value")
+    bins = display.get_attribute(field, "display_bin")
+    assert bins.min() >= display.N_BINS  # the loss field's own palette
+    n_vertices_per_sphere = 12  # ico sphere, 1 subdivision
+    assert len(shown.vertices) == n_vertices_per_sphere * int((value >= 0.75).sum()) > 0
+    settings.field_cutoff = 0.5
+    return {"field_shown": int((value >= 0.75).sum()), "field_total": len(value)}
 
 
 @check

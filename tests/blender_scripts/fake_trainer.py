@@ -31,7 +31,7 @@ def snapshot(out: Path, step: int, n: int, seed: int) -> Path:
         "color": rng.uniform(size=(n, 3)).astype(np.float32),
         "score": rng.uniform(size=n).astype(np.float32),
         "error": rng.uniform(size=n).astype(np.float32),
-        "field_centers": rng.normal(size=(64, 3)).astype(np.float32),
+        "field_centers": (0.1 * rng.integers(-5, 5, size=(64, 3))).astype(np.float32),  # voxel centres
         "field_loss": rng.uniform(size=64).astype(np.float32),
         "field_attention": rng.uniform(size=64).astype(np.float32),
     }

@@ -83,7 +83,7 @@ def prompt_wire_meshes() -> list:
     """Render-visible stand-ins for the prompt empties (empties are not rendered)."""
     made = []
     mat = bpy.data.materials.new("Prompt Wire")
-    mat.diffuse_color = (1.0, 0.1, 0.05, 1.0)
+    mat.diffuse_color = (0.9, 0.9, 0.95, 1.0)
     for obj in addon("prompts").prompt_objects(scene()):
         mesh = bpy.data.meshes.new(obj.name + " wire")
         bm = bmesh.new()
