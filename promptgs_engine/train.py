@@ -28,6 +28,7 @@ from .losses import photometric_loss
 from .metrics import mse_to_psnr
 from .render import render
 from .strategies import DefaultSchedule, make_default_strategy
+from .strategies.promptgs import PromptGSStrategy
 
 log = logging.getLogger("promptgs.train")
 
@@ -123,13 +124,28 @@ class Trainer:
         self.step = 0
         self.train_seconds = 0.0
         self._order: list[int] = []
+        self.focus = None
+        if cfg.strategy == "promptgs":
+            from .focus import PromptFocus, load_prompt_setting
+
+            self.focus = PromptFocus(self, load_prompt_setting(cfg))
+            self.strategy.attention_fn = lambda pts: self.focus.field.attention(pts.cpu(), self.focus.prompts)
 
     # -- set-up -----------------------------------------------------------------------
 
     def _make_strategy(self):
         if self.cfg.strategy in ("3dgs", "absgs"):
-            return make_default_strategy(self.cfg.strategy, self.schedule)
-        raise PromptGSError(f"strategy {self.cfg.strategy!r} is not available in this build")
+            return make_default_strategy(self.cfg.strategy, self.schedule, budget=self.cfg.budget)
+        sched = self.schedule
+        return PromptGSStrategy(
+            refine_start_iter=sched.refine_start_iter,
+            refine_stop_iter=sched.refine_stop_iter,
+            refine_every=sched.refine_every,
+            reset_every=sched.reset_every,
+            budget=self.cfg.budget,
+            protect_steps=max(sched.reset_every, 2 * sched.refine_every),
+            **self.cfg.extra.get("promptgs", {}),
+        )
 
     @property
     def absgrad(self) -> bool:
@@ -146,43 +162,66 @@ class Trainer:
 
     # -- one step ---------------------------------------------------------------------
 
-    def render_camera(self, camera: Camera, sh_degree: int | None = None, **kwargs):
-        """Render one camera at its own resolution; returns (image [H,W,C], alpha, info)."""
+    def render_cameras(self, cameras: list[Camera], sh_degree: int | None = None, **kwargs):
+        """Render cameras of one size in one call; returns (images [C,H,W,D], alphas, info)."""
         p = self.params
         colors = torch.cat([p["sh0"], p["shN"]], dim=1)
-        img, alpha, info = render(
+        return render(
             p["means"],
             p["quats"],
             torch.exp(p["scales"]),
             torch.sigmoid(p["opacities"]),
             colors,
-            camera.world_to_camera[None].to(self.device),
-            camera.K[None].to(self.device),
-            camera.width,
-            camera.height,
+            torch.stack([c.world_to_camera for c in cameras]).to(self.device),
+            torch.stack([c.K for c in cameras]).to(self.device),
+            cameras[0].width,
+            cameras[0].height,
             sh_degree=self.cfg.sh_degree if sh_degree is None else sh_degree,
             backend=self.backend,
             **kwargs,
         )
+
+    def render_camera(self, camera: Camera, sh_degree: int | None = None, **kwargs):
+        """Render one camera at its own resolution; returns (image [H,W,C], alpha, info)."""
+        img, alpha, info = self.render_cameras([camera], sh_degree, **kwargs)
         return img[0], alpha[0], info
+
+    def plan_step(self, step: int):
+        """The views this step trains on (one size): PromptGS's plan, or 3DGS's next view."""
+        if self.focus is not None:
+            return self.focus.plan(step)
+        from .focus import TrainView
+
+        index = self.next_camera_index()
+        camera = self.scene.train_cameras[index].downscaled(self.cfg.downscale)
+        return [TrainView(camera, camera.load_image(), index)]
 
     def train_step(self) -> StepResult:
         step = self.step
-        camera = self.scene.train_cameras[self.next_camera_index()].downscaled(self.cfg.downscale)
-        gt = camera.load_image().to(self.device)
-        img, _, info = self.render_camera(camera, sh_degree=self.active_sh_degree(step), absgrad=self.absgrad)
-        loss = photometric_loss(img[None], gt[None], self.cfg.ssim_lambda)
+        views = self.plan_step(step)
+        cameras = [v.camera for v in views]
+        gt = torch.stack([v.gt for v in views]).to(self.device)
+        mode = "RGB+ED" if self.focus is not None else "RGB"
+        out, alpha, info = self.render_cameras(
+            cameras, sh_degree=self.active_sh_degree(step), absgrad=self.absgrad, render_mode=mode
+        )
+        img = out[..., :3]
+        loss = photometric_loss(img, gt, self.cfg.ssim_lambda)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
         loss.backward()
-        loss_value = float(loss)
+        loss_value = loss.item()
         if not math.isfinite(loss_value):
-            raise TrainingError(f"step {step}: the loss is {loss_value} (camera {camera.name})")
+            raise TrainingError(f"step {step}: the loss is {loss_value} (camera {cameras[0].name})")
+        if self.focus is not None:
+            self.focus.observe(step, views, img.detach(), out[..., 3].detach(), alpha[..., 0].detach(), info)
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
         for sched in self.schedulers:
             sched.step()
         self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, step, info, packed=False)
+        if self.focus is not None:
+            self.focus.after_step(step)
         self.check_finite()
         with torch.no_grad():
             mse = float(((img.detach() - gt) ** 2).mean())
@@ -210,6 +249,7 @@ class Trainer:
             "rng": self.rng.bit_generator.state,
             "order": list(self._order),
             "torch_rng": torch.get_rng_state(),
+            "focus": self.focus.state_dict() if self.focus is not None else None,
         }
 
     def save_checkpoint(self) -> None:
@@ -238,12 +278,18 @@ class Trainer:
         torch.set_rng_state(ckpt["torch_rng"])
         self.step = int(ckpt["step"])
         self.train_seconds = float(ckpt["train_seconds"])
+        if self.focus is not None and ckpt.get("focus"):
+            self.focus.load_state_dict(ckpt["focus"])
 
     def snapshot(self) -> Path:
         folder = self.out / "snapshots"
         folder.mkdir(exist_ok=True)
         path = folder / f"step_{self.step:06d}.npz"
-        write_snapshot(path, self.params)
+        score = error = field = None
+        if self.focus is not None:
+            score, error = self.strategy.per_gaussian(self.params, self.strategy_state)
+            field = self.focus.field_arrays()
+        write_snapshot(path, self.params, score=score, error=error, field=field)
         self.events.emit("snapshot", step=self.step, path=str(path), n_gaussians=self.n_gaussians)
         return path
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 from gsplat.strategy import DefaultStrategy
-from gsplat.strategy.ops import reset_opa
+from gsplat.strategy.ops import duplicate, reset_opa, split
 
 STRATEGY_NAMES = ("3dgs", "absgs", "promptgs")
 
@@ -47,7 +47,11 @@ class DefaultSchedule:
 
 @dataclass
 class ResettingDefaultStrategy(DefaultStrategy):
-    """gsplat's DefaultStrategy with the periodic opacity reset actually applied."""
+    """gsplat's DefaultStrategy with the periodic opacity reset actually applied, and an
+    optional Gaussian budget: when more Gaussians qualify for growth than the budget has
+    room for, the ones with the highest `growth_priority` grow."""
+
+    budget: int | None = None
 
     def step_post_backward(
         self,
@@ -62,8 +66,51 @@ class ResettingDefaultStrategy(DefaultStrategy):
         if 0 < step < self.refine_stop_iter and step % self.reset_every == 0:
             reset_opa(params=params, optimizers=optimizers, state=state, value=self.prune_opa * 2.0)
 
+    # -- growth -----------------------------------------------------------------------
 
-def make_default_strategy(name: str, schedule: DefaultSchedule, verbose: bool = False) -> ResettingDefaultStrategy:
+    def growth_candidates(self, params, state, grads: torch.Tensor, step: int) -> torch.Tensor:
+        """Gaussians that qualify for growth: mean view-space gradient above threshold."""
+        return grads > self.grow_grad2d
+
+    def growth_priority(self, params, state, grads: torch.Tensor) -> torch.Tensor:
+        """Order in which candidates grow when the budget is short (higher first)."""
+        return grads
+
+    def _grow_gs(self, params, optimizers, state, step) -> tuple[int, int]:
+        grads = state["grad2d"] / state["count"].clamp_min(1)
+        grow = self.growth_candidates(params, state, grads, step)
+        if self.budget is not None:
+            room = max(self.budget - params["means"].shape[0], 0)
+            if int(grow.sum()) > room:
+                priority = self.growth_priority(params, state, grads).masked_fill(~grow, float("-inf"))
+                keep = torch.zeros_like(grow)
+                if room > 0:
+                    keep[priority.topk(room).indices] = True
+                grow = grow & keep
+        return grow_selected(params, optimizers, state, grow, self.grow_scale3d, self.revised_opacity)
+
+
+def grow_selected(params, optimizers, state, grow: torch.Tensor, grow_scale3d: float, revised_opacity: bool = False) -> tuple[int, int]:
+    """Grow the selected Gaussians as 3DGS does: clone the small ones, split the large.
+
+    Each grown Gaussian adds exactly one to the count (a clone adds a copy; a split
+    replaces one by two).
+    """
+    is_small = torch.exp(params["scales"]).max(dim=-1).values <= grow_scale3d * state["scene_scale"]
+    is_dupli = grow & is_small
+    is_split = grow & ~is_small
+    n_dupli, n_split = int(is_dupli.sum()), int(is_split.sum())
+    if n_dupli > 0:
+        duplicate(params=params, optimizers=optimizers, state=state, mask=is_dupli)
+    if n_split > 0:
+        is_split = torch.cat([is_split, torch.zeros(n_dupli, dtype=torch.bool, device=is_split.device)])
+        split(params=params, optimizers=optimizers, state=state, mask=is_split, revised_opacity=revised_opacity)
+    return n_dupli, n_split
+
+
+def make_default_strategy(
+    name: str, schedule: DefaultSchedule, budget: int | None = None, verbose: bool = False
+) -> ResettingDefaultStrategy:
     """`3dgs`: view-space gradient threshold 2e-4; `absgs`: absolute gradients, 8e-4."""
     if name not in ("3dgs", "absgs"):
         raise ValueError(f"unknown default strategy {name!r}")
@@ -75,5 +122,6 @@ def make_default_strategy(name: str, schedule: DefaultSchedule, verbose: bool = 
         refine_stop_iter=schedule.refine_stop_iter,
         refine_every=schedule.refine_every,
         reset_every=schedule.reset_every,
+        budget=budget,
         verbose=verbose,
     )

@@ -1,0 +1,243 @@
+"""Focused training for PromptGS: which views each step trains on, at which resolution,
+and the prompt-side bookkeeping around the PromptGS strategy.
+
+`PromptFocus` is what the trainer consults when ``--strategy promptgs``:
+
+* **Views.** `views.ViewSchedule` gives the paper's 2:3:2:3 cycle of random multiview,
+  single, related multiview and single steps. Related steps train on the prompt's most
+  relevant views (`views.related_views`), rendered as *crops* around the box's
+  projection at full training resolution: a tiny object gets the whole step's loss,
+  at full detail, for the cost of a few thousand pixels.
+* **Progressive resolution.** Full-image steps run at 8×, 4×, 2× the training
+  downscale before the full resolution (paper: 7k steps each at 30k; here the same
+  fractions of the run, skipping levels smaller than 64 px across).
+* **Error field.** Each step's per-pixel loss is back-projected with the rendered
+  expected depth into `errorfield.ErrorField`; its attention weights prompt growth,
+  its peaks become prompts with ``--auto-prompts``, and it is written to snapshots.
+* **Resampling.** During densification, every ``resample_every`` steps, each prompt is
+  carved (`strategies.promptgs.carve_prompt`) from its related views and the consistent
+  high-error points become new small Gaussians.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from .data import Camera
+from .errorfield import ErrorField
+from .errors import PromptError
+from .losses import edge_loss, ssim_map
+from .prompts import PromptBox, center_prompt, check_visible, load_prompts, project_box, prompts_from_json
+from .strategies.promptgs import LAMBDA_DSSIM, LAMBDA_EDGE, LAMBDA_L1, append_gaussians, carve_prompt
+from .views import RELATED_MULTIVIEW, ViewSchedule, related_views, views_cap_from_memory
+
+log = logging.getLogger("promptgs.focus")
+
+PROGRESSIVE_LEVELS = (8, 4, 2)
+PROGRESSIVE_FRACTION = 7 / 30  # of the run, per level (paper: 7000 of 30000 steps)
+MIN_PROGRESSIVE_WIDTH = 64
+
+
+@dataclass
+class TrainView:
+    """A camera to render this step (possibly a crop) and its ground-truth image."""
+
+    camera: Camera
+    gt: torch.Tensor  # [H, W, 3]
+    source: int  # index of the training camera
+
+
+def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Camera:
+    """The sub-window [x0, x0+width) × [y0, y0+height) of ``camera`` as its own camera."""
+    K = camera.K.clone()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return dataclasses.replace(camera, width=width, height=height, K=K)
+
+
+def load_prompt_setting(cfg) -> list[PromptBox]:
+    """The prompt boxes a config asks for: a file or inline object, and/or the centre box."""
+    boxes: list[PromptBox] = []
+    if cfg.prompts is not None:
+        if isinstance(cfg.prompts, (dict, list)):
+            boxes += prompts_from_json(cfg.prompts, source="job file prompts")
+        else:
+            boxes += load_prompts(cfg.prompts)
+    if cfg.center_prompt:
+        boxes.append(center_prompt())
+    return boxes
+
+
+def available_memory_bytes() -> int:
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return 4 << 30
+
+
+class PromptFocus:
+    def __init__(self, trainer, prompts: list[PromptBox], max_views: int = 3, related_k: int = 8):
+        self.trainer = trainer
+        cfg = trainer.cfg
+        self.cameras = trainer.scene.train_cameras
+        self.base_downscale = cfg.downscale
+        self.full_cameras = [c.downscaled(self.base_downscale) for c in self.cameras]
+        self.prompts: list[PromptBox] = []
+        self.related: list[list[int]] = []
+        self.related_k = related_k
+        self.field = ErrorField.from_extent(trainer.scene.extent, resolution=128)
+        self.auto_prompts = int(cfg.auto_prompts or 0)
+        self.auto_prompt_step = None
+        sched = trainer.schedule
+        if self.auto_prompts:
+            self.auto_prompt_step = sched.refine_start_iter + (sched.refine_stop_iter - sched.refine_start_iter) // 4
+        self.resample_every = max(2 * sched.refine_every, 20)
+        self.progressive = cfg.progressive if cfg.progressive is not None else True
+        cam0 = self.full_cameras[0]
+        bytes_per_view = cam0.width * cam0.height * 4 * 64  # image, alpha, depth and their gradients
+        cap = views_cap_from_memory(bytes_per_view, available_memory_bytes(), max_views=max_views)
+        self.schedule = ViewSchedule(len(self.cameras), max_views_per_step=max(cap, 1), seed=cfg.seed)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.set_prompts(prompts)
+
+    # -- prompts ----------------------------------------------------------------------
+
+    def set_prompts(self, prompts: list[PromptBox]) -> None:
+        if prompts:
+            check_visible(prompts, self.full_cameras, source="prompts")
+        self.prompts = list(prompts)
+        self.related = related_views(self.prompts, self.full_cameras, self.related_k) if self.prompts else []
+        self.schedule.set_regions(self.related)
+        self.trainer.strategy.set_prompts(self.prompts)
+        log.info("%d prompts; related views %s", len(self.prompts), self.related)
+
+    # -- views ------------------------------------------------------------------------
+
+    def downscale_at(self, step: int) -> int:
+        """Extra downscale of full-image steps under the progressive schedule."""
+        if not self.progressive:
+            return 1
+        width = self.full_cameras[0].width
+        levels = [f for f in PROGRESSIVE_LEVELS if width // f >= MIN_PROGRESSIVE_WIDTH]
+        stage = int(step / (PROGRESSIVE_FRACTION * self.trainer.cfg.iterations))
+        return levels[stage] if stage < len(levels) else 1
+
+    def _crop_views(self, region: int, views: list[int]) -> list[TrainView]:
+        box = self.prompts[region]
+        boxes = []
+        for v in views:
+            bbox = project_box(box, self.full_cameras[v]).pixel_bbox()
+            if bbox is not None:
+                boxes.append((v, bbox))
+        if not boxes:
+            return []
+        margin = 8
+        w = max(b[2] - b[0] for _, b in boxes) + 2 * margin
+        h = max(b[3] - b[1] for _, b in boxes) + 2 * margin
+        out = []
+        for v, (x0, y0, x1, y1) in boxes:
+            cam = self.full_cameras[v]
+            cw, ch = max(min(w, cam.width), 16), max(min(h, cam.height), 16)
+            cx0 = min(max((x0 + x1) // 2 - cw // 2, 0), cam.width - cw)
+            cy0 = min(max((y0 + y1) // 2 - ch // 2, 0), cam.height - ch)
+            gt = cam.load_image()[cy0 : cy0 + ch, cx0 : cx0 + cw]
+            out.append(TrainView(crop_camera(cam, cx0, cy0, cw, ch), gt, v))
+        # A batch renders at one size: keep the views whose crop matches the first.
+        size = (out[0].camera.width, out[0].camera.height)
+        return [t for t in out if (t.camera.width, t.camera.height) == size]
+
+    def plan(self, step: int) -> list[TrainView]:
+        batch = self.schedule.batch(step)
+        if batch.kind == RELATED_MULTIVIEW and batch.region is not None and self.prompts:
+            views = self._crop_views(batch.region, batch.views)
+            if views:
+                return views
+        factor = self.downscale_at(step)
+        out = []
+        for v in batch.views:
+            cam = self.full_cameras[v].downscaled(factor)
+            out.append(TrainView(cam, cam.load_image(), v))
+        size = (out[0].camera.width, out[0].camera.height)
+        return [t for t in out if (t.camera.width, t.camera.height) == size]
+
+    # -- after each step --------------------------------------------------------------
+
+    @torch.no_grad()
+    def observe(self, step: int, views: list[TrainView], rendered: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, info: dict) -> None:
+        """Per-view losses and per-pixel errors for the strategy; feed the error field."""
+        gts = torch.stack([v.gt for v in views])
+        l1_map = (rendered - gts).abs().mean(dim=-1)  # [C, H, W]
+        dssim_map = (1.0 - ssim_map(rendered, gts)).mean(dim=-1)
+        view_loss = torch.stack(
+            [
+                LAMBDA_L1 * l1_map[i].mean() + LAMBDA_DSSIM * dssim_map[i].mean() + LAMBDA_EDGE * edge_loss(rendered[i : i + 1], gts[i : i + 1])
+                for i in range(len(views))
+            ]
+        )
+        info["view_loss"] = view_loss
+        info["error_map"] = l1_map
+        loss_map = 0.8 * l1_map + 0.2 * dssim_map
+        for i, v in enumerate(views):
+            self.field.accumulate(loss_map[i], depth[i], alpha[i], v.camera, step=step, top_q=0.1)
+
+    def after_step(self, step: int) -> None:
+        sched = self.trainer.schedule
+        if self.auto_prompt_step is not None and step == self.auto_prompt_step:
+            proposals = self.field.peaks(self.auto_prompts)
+            visible = []
+            for box in proposals:
+                try:
+                    check_visible([box], self.full_cameras)
+                    visible.append(box)
+                except PromptError:
+                    continue
+            log.info("step %d: %d automatic prompts from the error field", step, len(visible))
+            self.set_prompts(self.prompts + visible)
+        in_window = sched.refine_start_iter < step < sched.refine_stop_iter
+        if self.prompts and in_window and step % self.resample_every == 0:
+            self.resample(step)
+
+    @torch.no_grad()
+    def resample(self, step: int) -> int:
+        t = self.trainer
+        added = 0
+        for region, box in enumerate(self.prompts):
+            views = self._crop_views(region, self.related[region])
+            if len(views) < 3:
+                continue
+            triples = []
+            for view in views:
+                img, _, _ = t.render_camera(view.camera)
+                triples.append((view.camera, img.clamp(0, 1), view.gt))
+            room = None if t.cfg.budget is None else max(t.cfg.budget - t.n_gaussians, 0)
+            max_points = 1000 if room is None else min(1000, room)
+            if max_points <= 0:
+                break
+            carved = carve_prompt(box, triples, max_points=max_points, generator=self.generator)
+            if carved.means.shape[0]:
+                jitter = (torch.rand(carved.means.shape, generator=self.generator) - 0.5) * carved.voxel * 0.5
+                added += append_gaussians(
+                    t.params, t.optimizers, t.strategy_state, carved.means + jitter, carved.colors,
+                    scale=carved.voxel * 0.7, opacity=0.5, step=step,
+                )
+        if added:
+            log.info("step %d: resampled %d Gaussians in prompts", step, added)
+        return added
+
+    # -- outputs ----------------------------------------------------------------------
+
+    def field_arrays(self) -> dict[str, Any]:
+        return self.field.to_arrays(self.prompts) if len(self.field) else {}
+
+    def state_dict(self) -> dict:
+        return {"prompts": [p.to_dict() for p in self.prompts], "field": self.field.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.field.load_state_dict(state["field"])
+        self.set_prompts(prompts_from_json({"prompts": state["prompts"]}, source="checkpoint"))

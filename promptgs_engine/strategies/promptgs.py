@@ -1,0 +1,298 @@
+"""The PromptGS densification strategy: Gaussian scoring, prompt-prioritised growth,
+protection of young Gaussians in prompts, and attention-guided resampling.
+
+Outside the prompt boxes it behaves as the 3DGS strategy (gsplat's DefaultStrategy, with
+the opacity reset applied). Inside them:
+
+* **Score.** Each Gaussian accumulates, over the views that see it,
+  ``S_g = Σ_i P^i · F(∇_g + d_g^i + o_g + s_g + r_g)`` (paper Eq. 2), where
+  ``P^i = λ1·L1 + λ2·D-SSIM + λ3·L_edge`` is view i's loss (Eq. 3) and the terms are
+  normalised so that 1 means "at the densification threshold":
+  ``∇_g`` = view-space gradient / grow_grad2d, ``d_g^i`` = 1 / (1 + depth / scene_scale)
+  (near Gaussians count more), ``o_g`` = opacity, ``s_g`` = largest scale /
+  (grow_scale3d · scene_scale), ``r_g`` = screen radius / (grow_scale2d · image size);
+  each term is clamped to [0, 4] and ``F(x) = log(1 + x)`` keeps one huge term from
+  dominating.
+* **Prioritised growth.** Inside prompts the gradient threshold is lowered to
+  ``prompt_grad_scale · grow_grad2d``; candidates are ranked by mean score per view
+  times ``1 + attention`` (the error field fused with the prompt weight), and the
+  highest grow first. Outside prompts only the best ``outside_keep`` fraction of the
+  3DGS candidates (by score) grows, which is what keeps the total count at or below
+  the 3DGS baseline. A ``budget`` caps the total, prompt candidates first.
+* **Protection.** Gaussians born inside a prompt (by growth or resampling) are not
+  pruned for ``protect_steps`` steps, so the first opacity prune does not remove an
+  object before it has been seen from enough views.
+* **Resampling** (`carve_prompt`): inside a prompt box, candidate points on a voxel grid
+  are projected into the box's most relevant views; a point is kept where the current
+  render is wrong (high error at its pixel) in most of the views that see it — a
+  multi-view-consistent vote that recovers objects SfM missed entirely.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import torch
+import torch.nn.functional as F
+from gsplat.strategy.ops import _update_param_with_optimizer, remove
+
+from ..gaussians import rgb_to_sh
+from ..prompts import PromptBox, boxes_contain
+from .default import ResettingDefaultStrategy
+
+# Weights of the per-view loss P^i (Eq. 3).
+LAMBDA_L1 = 0.8
+LAMBDA_DSSIM = 0.2
+LAMBDA_EDGE = 0.5
+
+
+@dataclass
+class PromptGSStrategy(ResettingDefaultStrategy):
+    prompts: list = field(default_factory=list)  # list[PromptBox]
+    prompt_grad_scale: float = 0.25
+    outside_keep: float = 0.7
+    protect_steps: int = 500
+    attention_fn: Any = None  # callable(points [N,3]) -> attention [N] in [0, 2], or None
+
+    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
+        state = super().initialize_state(scene_scale)
+        # score / error: sums over the views that saw each Gaussian; views: how many.
+        # (gsplat's own `count` is zeroed at every refinement, these are not.)
+        state.update({"score": None, "error": None, "views": None, "born": None})
+        return state
+
+    def set_prompts(self, prompts: Sequence[PromptBox]) -> None:
+        self.prompts = list(prompts)
+
+    def inside_prompts(self, means: torch.Tensor) -> torch.Tensor:
+        if not self.prompts:
+            return torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+        return boxes_contain(self.prompts, means.detach().cpu()).any(dim=0).to(means.device)
+
+    # -- statistics -------------------------------------------------------------------
+
+    def _ensure_state(self, params, state) -> None:
+        n = params["means"].shape[0]
+        device = params["means"].device
+        for key in ("score", "error", "views"):
+            if state[key] is None:
+                state[key] = torch.zeros(n, device=device)
+        if state["born"] is None:
+            state["born"] = torch.zeros(n, device=device)
+
+    def _update_state(self, params, state, info, packed: bool = False) -> None:
+        super()._update_state(params, state, info, packed=packed)
+        self._ensure_state(params, state)
+        if "view_loss" not in info:
+            return
+        with torch.no_grad():
+            radii = info["radii"]  # [C, N, 2]
+            visible = (radii > 0).all(dim=-1)  # [C, N]
+            cam_ids, gs_ids = torch.where(visible)
+            if gs_ids.numel() == 0:
+                return
+            w, h = info["width"], info["height"]
+            grad = info["means2d"].absgrad if self.absgrad else info["means2d"].grad
+            grad = grad.clone()
+            grad[..., 0] *= w / 2.0 * info["n_cameras"]
+            grad[..., 1] *= h / 2.0 * info["n_cameras"]
+            g = (grad[cam_ids, gs_ids].norm(dim=-1) / self.grow_grad2d).clamp(0, 4)
+            depth = info["depths"][cam_ids, gs_ids]
+            d = 1.0 / (1.0 + depth.clamp_min(0) / state["scene_scale"])
+            o = torch.sigmoid(params["opacities"][gs_ids])
+            s = (torch.exp(params["scales"][gs_ids]).max(dim=-1).values / (self.grow_scale3d * state["scene_scale"])).clamp(0, 4)
+            r = (radii[cam_ids, gs_ids].max(dim=-1).values / (self.grow_scale2d * max(w, h))).clamp(0, 4)
+            view_loss = info["view_loss"].to(g.device)[cam_ids]
+            state["score"].index_add_(0, gs_ids, view_loss * torch.log1p(g + d + o + s + r))
+            state["views"].index_add_(0, gs_ids, torch.ones_like(g))
+            if "error_map" in info:
+                # Per-Gaussian error: the per-pixel loss under its projected centre.
+                emap = info["error_map"]  # [C, H, W]
+                xy = info["means2d"][cam_ids, gs_ids].detach()
+                px = xy[:, 0].long().clamp(0, w - 1)
+                py = xy[:, 1].long().clamp(0, h - 1)
+                state["error"].index_add_(0, gs_ids, emap[cam_ids, py, px])
+
+    # -- growth -----------------------------------------------------------------------
+
+    def growth_candidates(self, params, state, grads, step) -> torch.Tensor:
+        self._ensure_state(params, state)
+        inside = self.inside_prompts(params["means"])
+        thr = torch.where(inside, torch.full_like(grads, self.grow_grad2d * self.prompt_grad_scale), torch.full_like(grads, self.grow_grad2d))
+        candidates = grads > thr
+        outside = candidates & ~inside
+        n_out = int(outside.sum())
+        keep_out = math.ceil(self.outside_keep * n_out)
+        if 0 < keep_out < n_out:
+            mean_score = state["score"] / state["views"].clamp_min(1)
+            ranked = mean_score.masked_fill(~outside, float("-inf")).topk(keep_out).indices
+            kept = torch.zeros_like(outside)
+            kept[ranked] = True
+            candidates = (candidates & inside) | kept
+        return candidates
+
+    def per_gaussian(self, params, state) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """Mean score and mean pixel error per view that saw each Gaussian."""
+        if state.get("views") is None or state["views"].shape[0] != params["means"].shape[0]:
+            return None, None
+        views = state["views"].clamp_min(1)
+        return state["score"] / views, state["error"] / views
+
+    def growth_priority(self, params, state, grads) -> torch.Tensor:
+        priority = state["score"] / state["views"].clamp_min(1)
+        inside = self.inside_prompts(params["means"])
+        if self.attention_fn is not None and bool(inside.any()):
+            att = self.attention_fn(params["means"][inside].detach()).to(priority.device)
+            priority[inside] = priority[inside] * (1.0 + att)
+        # Prompt candidates always rank above the rest.
+        return priority + inside.float() * (priority.abs().max() + 1.0)
+
+    def _grow_gs(self, params, optimizers, state, step) -> tuple[int, int]:
+        n_before = params["means"].shape[0]
+        n_dupli, n_split = super()._grow_gs(params, optimizers, state, step)
+        n_new = n_dupli + 2 * n_split
+        if n_new:
+            state["born"][-n_new:] = float(step)
+            for key in ("score", "error", "views"):
+                state[key][-n_new:] = 0.0
+        assert params["means"].shape[0] == n_before + n_dupli + n_split
+        return n_dupli, n_split
+
+    # -- pruning ----------------------------------------------------------------------
+
+    @torch.no_grad()
+    def _prune_gs(self, params, optimizers, state, step) -> int:
+        self._ensure_state(params, state)
+        is_prune = torch.sigmoid(params["opacities"].flatten()) < self.prune_opa
+        if step > self.reset_every:
+            is_too_big = torch.exp(params["scales"]).max(dim=-1).values > self.prune_scale3d * state["scene_scale"]
+            is_prune = is_prune | is_too_big
+        young = (step - state["born"]) < self.protect_steps
+        protected = young & self.inside_prompts(params["means"])
+        is_prune = is_prune & ~protected
+        n_prune = int(is_prune.sum())
+        if n_prune > 0:
+            remove(params=params, optimizers=optimizers, state=state, mask=is_prune)
+        return n_prune
+
+
+# -- resampling ---------------------------------------------------------------------------
+
+
+@dataclass
+class CarvedPoints:
+    means: torch.Tensor  # [M, 3]
+    colors: torch.Tensor  # [M, 3] in [0, 1]
+    voxel: float  # grid spacing used
+
+
+def carve_prompt(
+    box: PromptBox,
+    views: Sequence[tuple[Any, torch.Tensor, torch.Tensor]],
+    max_points: int = 2000,
+    min_views: int = 3,
+    min_vote: float = 0.6,
+    error_threshold: float = 0.08,
+    max_candidates: int = 250_000,
+    generator: torch.Generator | None = None,
+) -> CarvedPoints:
+    """Points inside ``box`` where the render is wrong consistently across views.
+
+    ``views`` holds ``(camera, render, ground_truth)`` with images ``[H, W, 3]`` for a
+    camera of the same size (a crop camera works). Candidates on a grid whose spacing
+    projects to about one pixel are kept when, among the views that see them, at least
+    ``min_views`` see them and a fraction ``min_vote`` has a per-pixel error above
+    ``max(error_threshold, 3 × median error)`` there (3×3 max-dilated, to forgive
+    sub-pixel misalignment). The colour is the median ground truth over those views.
+    """
+    empty = CarvedPoints(torch.zeros(0, 3), torch.zeros(0, 3), 0.0)
+    if not views:
+        return empty
+    # Grid spacing: one pixel at the median distance of the views, at the median focal.
+    center = torch.tensor(box.center, dtype=torch.float32)
+    depths, focals = [], []
+    for cam, _, _ in views:
+        p = cam.world_to_camera[:3, :3] @ center + cam.world_to_camera[:3, 3]
+        depths.append(float(p[2]))
+        focals.append(float(cam.K[0, 0]))
+    depth = max(float(torch.tensor(depths).median()), 1e-3)
+    voxel = depth / max(float(torch.tensor(focals).median()), 1e-6)
+    size = torch.tensor(box.size, dtype=torch.float32)
+    while float(torch.prod(torch.ceil(size / voxel))) > max_candidates:
+        voxel *= 1.25
+    counts = [max(int(math.ceil(float(s) / voxel)), 1) for s in size]
+    axes = [(torch.arange(c, dtype=torch.float32) + 0.5) / c - 0.5 for c in counts]
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3) * size
+    rot = torch.tensor(box.rotation_matrix(), dtype=torch.float32)
+    points = grid @ rot.T + center  # [P, 3]
+
+    seen = torch.zeros(points.shape[0])
+    hits = torch.zeros(points.shape[0])
+    color_sum = torch.zeros(points.shape[0], 3)
+    for cam, rendered, gt in views:
+        err = (rendered - gt).abs().mean(dim=-1)  # [H, W]
+        thr = max(error_threshold, 3.0 * float(err.median()))
+        err = F.max_pool2d(err[None, None], 3, stride=1, padding=1)[0, 0]
+        h, w = err.shape
+        cam_pts = points @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
+        z = cam_pts[:, 2]
+        uv = cam_pts[:, :2] / z.clamp_min(1e-6)[:, None] * torch.stack([cam.K[0, 0], cam.K[1, 1]]) + torch.stack([cam.K[0, 2], cam.K[1, 2]])
+        px, py = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
+        inside = (z > 1e-3) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+        idx = torch.where(inside)[0]
+        seen[idx] += 1
+        hit = err[py[idx], px[idx]] > thr
+        hits[idx[hit]] += 1
+        color_sum[idx[hit]] += gt[py[idx[hit]], px[idx[hit]]]
+    keep = (seen >= min_views) & (hits >= min_vote * seen)
+    idx = torch.where(keep)[0]
+    if idx.numel() == 0:
+        return CarvedPoints(torch.zeros(0, 3), torch.zeros(0, 3), voxel)
+    if idx.numel() > max_points:
+        # Prefer the most consistent candidates; break ties at random.
+        vote = hits[idx] / seen[idx] + 1e-3 * torch.rand(idx.numel(), generator=generator)
+        idx = idx[vote.topk(max_points).indices]
+    colors = color_sum[idx] / hits[idx, None].clamp_min(1)
+    return CarvedPoints(points[idx], colors.clamp(0, 1), voxel)
+
+
+@torch.no_grad()
+def append_gaussians(
+    params: torch.nn.ParameterDict,
+    optimizers: dict[str, torch.optim.Optimizer],
+    state: dict[str, Any],
+    means: torch.Tensor,
+    colors: torch.Tensor,
+    scale: float,
+    opacity: float,
+    step: int,
+) -> int:
+    """Add isotropic Gaussians (fresh optimizer state) and extend the strategy state."""
+    m = means.shape[0]
+    if m == 0:
+        return 0
+    device = params["means"].device
+    k_rest = params["shN"].shape[1]
+    new = {
+        "means": means.to(device),
+        "scales": torch.full((m, 3), math.log(scale), device=device),
+        "quats": torch.tensor([1.0, 0.0, 0.0, 0.0], device=device).repeat(m, 1),
+        "opacities": torch.full((m,), math.log(opacity / (1 - opacity)), device=device),
+        "sh0": rgb_to_sh(colors.to(device)).reshape(m, 1, 3),
+        "shN": torch.zeros(m, k_rest, 3, device=device),
+    }
+
+    def param_fn(name: str, p: torch.Tensor) -> torch.Tensor:
+        return torch.nn.Parameter(torch.cat([p, new[name].to(p.dtype)]), requires_grad=p.requires_grad)
+
+    def optimizer_fn(key: str, v: torch.Tensor) -> torch.Tensor:
+        return torch.cat([v, torch.zeros((m, *v.shape[1:]), device=v.device, dtype=v.dtype)])
+
+    _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers)
+    for key, value in state.items():
+        if isinstance(value, torch.Tensor):
+            fill = float(step) if key == "born" else 0.0
+            state[key] = torch.cat([value, torch.full((m, *value.shape[1:]), fill, device=value.device, dtype=value.dtype)])
+    return m
