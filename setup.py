@@ -19,7 +19,13 @@ setup(
     ext_modules=[
         CppExtension(
             name="promptgs_engine._C",
-            sources=["csrc/bindings.cpp", "csrc/rasterize_forward.cpp", "csrc/rasterize_backward.cpp"],
+            sources=[
+                "csrc/bindings.cpp",
+                "csrc/rasterize_forward.cpp",
+                "csrc/rasterize_backward.cpp",
+                "csrc/tile_kernels.cpp",
+                "csrc/project.cpp",
+            ],
             extra_compile_args=extra_compile_args,
             extra_link_args=extra_link_args,
         )

@@ -7,6 +7,7 @@
 
 #include <omp.h>
 
+#include "project.h"
 #include "rasterize.h"
 
 namespace {
@@ -119,6 +120,108 @@ std::vector<Tensor> backward(Tensor means2d, Tensor conics, Tensor colors, Tenso
     return {g_means2d, g_conics, g_colors, g_opac, g_abs};
 }
 
+promptgs::Camera make_camera(const Tensor& viewmat, const Tensor& K, int64_t width, int64_t height, double near_plane,
+                             double far_plane, double eps2d) {
+    check(viewmat, "viewmat", torch::kFloat32, {4, 4});
+    check(K, "K", torch::kFloat32, {3, 3});
+    const float* v = viewmat.data_ptr<float>();
+    const float* k = K.data_ptr<float>();
+    promptgs::Camera cam;
+    for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) cam.R[3 * r + c] = v[4 * r + c];
+        cam.t[r] = v[4 * r + 3];
+    }
+    cam.fx = k[0];
+    cam.fy = k[4];
+    cam.cx = k[2];
+    cam.cy = k[5];
+    cam.width = static_cast<int>(width);
+    cam.height = static_cast<int>(height);
+    cam.near_plane = static_cast<float>(near_plane);
+    cam.far_plane = static_cast<float>(far_plane);
+    cam.eps2d = static_cast<float>(eps2d);
+    return cam;
+}
+
+promptgs::ProjectInputs make_project_inputs(const Tensor& means, const Tensor& quats, const Tensor& scales,
+                                            const Tensor& opacities, const Tensor& sh, int64_t sh_degree) {
+    const int64_t N = means.size(0);
+    check(means, "means", torch::kFloat32, {N, 3});
+    check(quats, "quats", torch::kFloat32, {N, 4});
+    check(scales, "scales", torch::kFloat32, {N, 3});
+    check(opacities, "opacities", torch::kFloat32, {N});
+    promptgs::ProjectInputs in;
+    in.means = means.data_ptr<float>();
+    in.quats = quats.data_ptr<float>();
+    in.scales = scales.data_ptr<float>();
+    in.opacities = opacities.data_ptr<float>();
+    in.n = N;
+    in.sh = nullptr;
+    in.sh_k = 0;
+    in.sh_degree = 0;
+    if (sh.numel() > 0 || sh.dim() == 3) {
+        TORCH_CHECK(sh_degree >= 0 && sh_degree <= 3, "sh_degree must be in 0..3, got ", sh_degree);
+        check(sh, "sh", torch::kFloat32, {N, -1, 3});
+        TORCH_CHECK(sh.size(1) >= (sh_degree + 1) * (sh_degree + 1), "sh_degree ", sh_degree, " needs ",
+                    (sh_degree + 1) * (sh_degree + 1), " SH coefficients, got ", sh.size(1));
+        in.sh = sh.data_ptr<float>();
+        in.sh_k = static_cast<int>(sh.size(1));
+        in.sh_degree = static_cast<int>(sh_degree);
+    }
+    return in;
+}
+
+std::vector<Tensor> project_fwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh,
+                                int64_t sh_degree, Tensor viewmat, Tensor K, int64_t width, int64_t height,
+                                double near_plane, double far_plane, double eps2d) {
+    promptgs::ProjectInputs in = make_project_inputs(means, quats, scales, opacities, sh, sh_degree);
+    promptgs::Camera cam = make_camera(viewmat, K, width, height, near_plane, far_plane, eps2d);
+    const int64_t N = in.n;
+    auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+    Tensor means2d = torch::empty({N, 2}, f32);
+    Tensor conics = torch::empty({N, 3}, f32);
+    Tensor depths = torch::empty({N}, f32);
+    Tensor radii = torch::empty({N, 2}, torch::TensorOptions().dtype(torch::kInt32));
+    Tensor colors = in.sh ? torch::empty({N, 3}, f32) : torch::empty({0}, f32);
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::project_forward(in, cam, means2d.data_ptr<float>(), conics.data_ptr<float>(),
+                                  depths.data_ptr<float>(), radii.data_ptr<int32_t>(),
+                                  in.sh ? colors.data_ptr<float>() : nullptr);
+    }
+    return {means2d, conics, depths, radii, colors};
+}
+
+std::vector<Tensor> project_bwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh,
+                                int64_t sh_degree, Tensor viewmat, Tensor K, int64_t width, int64_t height,
+                                double near_plane, double far_plane, double eps2d, Tensor radii, Tensor v_means2d,
+                                Tensor v_conics, Tensor v_depths, Tensor v_colors) {
+    promptgs::ProjectInputs in = make_project_inputs(means, quats, scales, opacities, sh, sh_degree);
+    promptgs::Camera cam = make_camera(viewmat, K, width, height, near_plane, far_plane, eps2d);
+    const int64_t N = in.n;
+    check(radii, "radii", torch::kInt32, {N, 2});
+    check(v_means2d, "v_means2d", torch::kFloat32, {N, 2});
+    check(v_conics, "v_conics", torch::kFloat32, {N, 3});
+    check(v_depths, "v_depths", torch::kFloat32, {N});
+    const bool has_vc = in.sh && v_colors.numel() > 0;
+    if (has_vc) check(v_colors, "v_colors", torch::kFloat32, {N, 3});
+    auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+    Tensor v_means = torch::empty({N, 3}, f32);
+    Tensor v_quats = torch::empty({N, 4}, f32);
+    Tensor v_scales = torch::empty({N, 3}, f32);
+    Tensor v_sh = in.sh ? torch::empty({N, in.sh_k, 3}, f32) : torch::empty({0}, f32);
+    if (in.sh && !has_vc) v_sh.zero_();
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::project_backward(in, cam, radii.data_ptr<int32_t>(), v_means2d.data_ptr<float>(),
+                                   v_conics.data_ptr<float>(), v_depths.data_ptr<float>(),
+                                   has_vc ? v_colors.data_ptr<float>() : nullptr, v_means.data_ptr<float>(),
+                                   v_quats.data_ptr<float>(), v_scales.data_ptr<float>(),
+                                   has_vc ? v_sh.data_ptr<float>() : nullptr);
+    }
+    return {v_means, v_quats, v_scales, v_sh};
+}
+
 int num_threads() { return omp_get_max_threads(); }
 
 }  // namespace
@@ -130,5 +233,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           "[colors HxWxD, alphas HxWx1, last_ids HxW, tile_offsets, tile_ids, tile_order].");
     m.def("rasterize_backward", &backward,
           "Gradients of one image -> [means2d Nx2, conics Nx3, colors NxD, opacities N, absgrad Nx2 or empty].");
+    m.def("project_forward", &project_fwd,
+          "EWA projection (+ SH colours) for one camera: (means, quats, scales, opacities, sh or empty, sh_degree, "
+          "viewmat, K, width, height, near, far, eps2d) -> [means2d, conics, depths, radii int32, colors or empty].");
+    m.def("project_backward", &project_bwd,
+          "Gradients of project_forward's outputs -> [v_means, v_quats, v_scales, v_sh or empty].");
     m.def("num_threads", &num_threads, "OpenMP threads the rasterizer uses.");
+    m.def("simd_variant", [] { return std::string(promptgs::tile_kernels().name); },
+          "Instruction set of the tile kernels picked for this CPU (avx512, avx2, sse2 or native).");
 }

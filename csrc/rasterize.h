@@ -13,8 +13,6 @@
 //    the box mean2d +- radii and composited in increasing depth order.
 #pragma once
 
-// Row vectors are only passed between inlined helpers; the ABI note does not apply.
-#pragma GCC diagnostic ignored "-Wpsabi"
 
 #include <cstdint>
 #include <cstring>
@@ -27,69 +25,6 @@ constexpr int kTilePixels = kTile * kTile;
 constexpr float kAlphaThreshold = 1.0f / 255.0f;
 constexpr float kMaxAlpha = 0.999f;
 constexpr float kTransmittanceEps = 1e-4f;
-
-// One tile row (16 pixels) as a vector, with GCC/Clang vector extensions. The compiler
-// maps it onto whatever the target has (one AVX-512 register, two AVX2 or four SSE ones),
-// so the hot loops are vectorised by construction rather than left to the auto-vectoriser.
-typedef float RowF __attribute__((vector_size(kTile * sizeof(float))));
-typedef int32_t RowI __attribute__((vector_size(kTile * sizeof(int32_t))));
-
-__attribute__((always_inline)) inline RowF splat_f(float v) { return RowF{} + v; }
-__attribute__((always_inline)) inline RowI splat_i(int32_t v) { return RowI{} + v; }
-__attribute__((always_inline)) inline RowF load_f(const float* p) {
-    RowF v;
-    std::memcpy(&v, p, sizeof(v));
-    return v;
-}
-__attribute__((always_inline)) inline RowI load_i(const int32_t* p) {
-    RowI v;
-    std::memcpy(&v, p, sizeof(v));
-    return v;
-}
-__attribute__((always_inline)) inline void store_f(float* p, RowF v) { std::memcpy(p, &v, sizeof(v)); }
-__attribute__((always_inline)) inline void store_i(int32_t* p, RowI v) { std::memcpy(p, &v, sizeof(v)); }
-__attribute__((always_inline)) inline RowF select(RowI mask, RowF a, RowF b) { return mask ? a : b; }
-__attribute__((always_inline)) inline RowF min_f(RowF a, float b) { return a < b ? a : splat_f(b); }
-// Horizontal sums by a shuffle tree (4 steps for 16 lanes) rather than 16 lane extracts.
-#if defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12)
-#define PROMPTGS_HSUM_TREE(v)                                                                              \
-    v += __builtin_shufflevector(v, v, 8, 9, 10, 11, 12, 13, 14, 15, 0, 1, 2, 3, 4, 5, 6, 7);            \
-    v += __builtin_shufflevector(v, v, 4, 5, 6, 7, 0, 1, 2, 3, 12, 13, 14, 15, 8, 9, 10, 11);            \
-    v += __builtin_shufflevector(v, v, 2, 3, 0, 1, 6, 7, 4, 5, 10, 11, 8, 9, 14, 15, 12, 13);            \
-    v += __builtin_shufflevector(v, v, 1, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10, 13, 12, 15, 14);            \
-    return v[0];
-#else
-#define PROMPTGS_HSUM_TREE(v)                       \
-    auto s = v[0];                                  \
-    for (int l = 1; l < kTile; ++l) s += v[l];      \
-    return s;
-#endif
-__attribute__((always_inline)) inline float hsum_f(RowF v) { PROMPTGS_HSUM_TREE(v) }
-__attribute__((always_inline)) inline int32_t hsum_i(RowI v) { PROMPTGS_HSUM_TREE(v) }
-
-// exp(x) for x <= 0 on a row, accurate to ~2 ulp. Inputs are clamped to [-87, 0]: callers
-// never need exp of a positive number, and exp(-87) is far below the 1/255 alpha cut-off.
-__attribute__((always_inline)) inline RowF exp_row(RowF x) {
-    x = x < -87.0f ? splat_f(-87.0f) : x;
-    x = x > 0.0f ? splat_f(0.0f) : x;
-    // n = round(x / ln2) (x <= 0, so truncating x/ln2 - 0.5 rounds to nearest)
-    const RowI ni = __builtin_convertvector(x * 1.44269504088896341f - 0.5f, RowI);
-    const RowF n = __builtin_convertvector(ni, RowF);
-    // Cody-Waite range reduction: r = x - n ln2 in two parts, then a degree-6 polynomial.
-    RowF r = x - n * 0.693359375f;
-    r = r + n * 2.12194440e-4f;
-    RowF p = splat_f(1.9875691500e-4f);
-    p = p * r + 1.3981999507e-3f;
-    p = p * r + 8.3334519073e-3f;
-    p = p * r + 4.1665795894e-2f;
-    p = p * r + 1.6666665459e-1f;
-    p = p * r + 5.0000001201e-1f;
-    p = p * r * r + r + 1.0f;
-    const RowI bits = (ni + 127) << 23;
-    RowF scale;
-    std::memcpy(&scale, &bits, sizeof(scale));
-    return p * scale;
-}
 
 // Per-Gaussian data the tile loops read, packed into one 32-byte record.
 struct alignas(32) Splat {
@@ -111,6 +46,41 @@ struct TileBins {
     std::vector<int32_t> offsets;  // [tiles + 1]
     std::vector<int32_t> ids;      // [n_isects] depth ranks, increasing (front to back) per tile
 };
+
+// What the per-tile kernels read and write (one image).
+struct TileArgs {
+    const int32_t* ids = nullptr;  // tile lists of depth ranks (TileBins::ids)
+    int64_t d = 0;                 // channels
+    int width = 0, height = 0;
+    const float* background = nullptr;  // [D] or nullptr
+    // forward outputs
+    float* out_colors = nullptr;  // [H, W, D]
+    float* out_alphas = nullptr;  // [H, W]
+    int32_t* out_last = nullptr;  // [H, W]
+    // backward inputs
+    const float* alphas = nullptr;       // [H, W] forward alphas
+    const int32_t* last_ids = nullptr;   // [H, W] forward last contributors
+    const float* grad_colors = nullptr;  // [H, W, D]
+    const float* grad_alphas = nullptr;  // [H, W]
+};
+
+// Per-Gaussian record in the backward gradient buffers: mean2d (2), conic (3),
+// opacity (1), |mean2d| (2), then the D colour channels.
+constexpr int kGradFixed = 8;
+
+// Per-tile kernels for one instruction set, picked once at load time from what the CPU
+// supports (AVX-512, AVX2+FMA or the baseline; see tile_kernels.cpp).
+struct TileKernels {
+    // Composites tile (x0, y0) from ranks ids[start, end); acc is D*256 floats of scratch.
+    void (*forward)(const TileArgs& a, const Splat* splats, const float* colors, int start, int end, int x0,
+                    int y0, float* acc);
+    // Backward for tile (x0, y0); scratch dcol and buf are D*256 floats, vcol D*16 floats;
+    // adds per-rank gradients into G (stride kGradFixed + D).
+    void (*backward)(const TileArgs& a, const Splat* splats, const float* colors, int start, int x0, int y0,
+                     float* dcol, float* buf, float* vcol, float* G);
+    const char* name;
+};
+const TileKernels& tile_kernels();
 
 // Inputs of one image. Arrays are float32 / int32, contiguous, N rows.
 struct RasterInputs {

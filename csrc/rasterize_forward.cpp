@@ -8,7 +8,6 @@
 #include <cmath>
 
 #include "rasterize.h"
-#include "simd_clones.h"
 
 namespace promptgs {
 
@@ -24,67 +23,6 @@ inline uint32_t float_key(float f) {
 struct TileRect {
     int32_t x0, y0, x1, y1;  // tiles [x0, x1) x [y0, y1)
 };
-
-PROMPTGS_SIMD_CLONES
-void forward_tile(const Splat* __restrict splats, const float* __restrict colors, int64_t D,
-                  const int32_t* __restrict ids, int start, int end, int x0, int y0, int rows, int cols,
-                  const float* __restrict background, int W, float* __restrict acc, float* __restrict out_colors,
-                  float* __restrict out_alphas, int32_t* __restrict last_ids) {
-    alignas(64) float T[kTilePixels];
-    alignas(64) int32_t active[kTilePixels];  // -1 while the pixel still composites, else 0
-    alignas(64) int32_t last[kTilePixels];
-    RowF px;
-    for (int l = 0; l < kTile; ++l) px[l] = static_cast<float>(x0 + l) + 0.5f;
-    std::fill(acc, acc + D * kTilePixels, 0.f);
-    for (int p = 0; p < kTilePixels; ++p) {
-        T[p] = 1.f;
-        last[p] = -1;
-        active[p] = ((p / kTile) < rows && (p % kTile) < cols) ? -1 : 0;
-    }
-    int alive = rows * cols;
-    for (int i = start; i < end && alive > 0; ++i) {
-        const int32_t g = ids[i];
-        const Splat s = splats[g];
-        const int r0 = std::max(0, static_cast<int>(std::floor(s.y - s.ry - 0.5f)) - y0);
-        const int r1 = std::min(rows - 1, static_cast<int>(std::ceil(s.y + s.ry)) - y0);
-        const float* cg = colors + static_cast<int64_t>(g) * D;
-        const RowF dx = s.x - px;
-        const RowF adx = 0.5f * s.a * dx;
-        for (int r = r0; r <= r1; ++r) {
-            const float dy = s.y - (static_cast<float>(y0 + r) + 0.5f);
-            const RowF sigma = (adx + s.b * dy) * dx + 0.5f * s.c * dy * dy;
-            const RowF alpha = min_f(s.opacity * exp_row(-sigma), kMaxAlpha);
-            const RowF t = load_f(T + r * kTile);
-            const RowF nt = t - t * alpha;
-            const RowI ok = (sigma >= 0.f) & (alpha >= kAlphaThreshold) & load_i(active + r * kTile);
-            const RowI use = ok & (nt > kTransmittanceEps);
-            const RowI stop = ok & (nt <= kTransmittanceEps);
-            // lane counts of composited (low half) and finished (high half) pixels
-            const int32_t counts = hsum_i((use & 1) | (stop & 0x10000));
-            if (counts == 0) continue;
-            alive -= counts >> 16;
-            store_f(T + r * kTile, select(use, nt, t));
-            store_i(last + r * kTile, use ? splat_i(i) : load_i(last + r * kTile));
-            store_i(active + r * kTile, load_i(active + r * kTile) & ~stop);
-            if ((counts & 0xffff) == 0) continue;
-            const RowF w = select(use, alpha * t, splat_f(0.f));
-            for (int64_t k = 0; k < D; ++k) {
-                float* A = acc + k * kTilePixels + r * kTile;
-                store_f(A, load_f(A) + cg[k] * w);
-            }
-        }
-    }
-    for (int r = 0; r < rows; ++r) {
-        for (int l = 0; l < cols; ++l) {
-            const int p = r * kTile + l;
-            const int64_t pix = static_cast<int64_t>(y0 + r) * W + (x0 + l);
-            for (int64_t k = 0; k < D; ++k)
-                out_colors[pix * D + k] = acc[k * kTilePixels + p] + (background ? T[p] * background[k] : 0.f);
-            out_alphas[pix] = 1.f - T[p];
-            last_ids[pix] = last[p];
-        }
-    }
-}
 
 }  // namespace
 
@@ -166,18 +104,23 @@ void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_
     std::vector<float> colors;
     gather_sorted(in, bins, splats, colors);
     const int n_tiles = bins.tiles_x * bins.tiles_y;
-    const int32_t* ids = bins.ids.data();
-    const int32_t* offs = bins.offsets.data();
+    TileArgs args;
+    args.ids = bins.ids.data();
+    args.d = in.d;
+    args.width = in.width;
+    args.height = in.height;
+    args.background = in.background;
+    args.out_colors = out_colors;
+    args.out_alphas = out_alphas;
+    args.out_last = last_ids;
+    const TileKernels& kernels = tile_kernels();
 #pragma omp parallel
     {
         std::vector<float> acc(static_cast<size_t>(in.d) * kTilePixels);
 #pragma omp for schedule(dynamic, 1)
         for (int tile = 0; tile < n_tiles; ++tile) {
-            const int x0 = (tile % bins.tiles_x) * kTile;
-            const int y0 = (tile / bins.tiles_x) * kTile;
-            forward_tile(splats.data(), colors.data(), in.d, ids, offs[tile], offs[tile + 1], x0, y0,
-                         std::min(kTile, in.height - y0), std::min(kTile, in.width - x0), in.background,
-                         in.width, acc.data(), out_colors, out_alphas, last_ids);
+            kernels.forward(args, splats.data(), colors.data(), bins.offsets[tile], bins.offsets[tile + 1],
+                            (tile % bins.tiles_x) * kTile, (tile / bins.tiles_x) * kTile, acc.data());
         }
     }
 }

@@ -84,9 +84,9 @@ def test_cpu_matches_reference_features(D, mode):
     assert cpu[0].shape == (1, H, W, D + (mode == "RGB+ED"))
     assert cpu[1].shape == (1, H, W, 1)
     assert (cpu[0] - ref[0]).abs().max().item() < 2e-5 * max(1.0, ref[0].abs().max().item())
-    assert (cpu[1] - ref[1]).abs().max().item() < 2e-6
+    assert (cpu[1] - ref[1]).abs().max().item() < 1e-5
     assert ref[1].max() > 0.9 and ref[1].min() < 0.5  # overlapping and sparse regions both present
-    assert torch.equal(cpu[3]["radii"], ref[3]["radii"])
+    assert (cpu[3]["radii"] - ref[3]["radii"]).abs().max() <= 1  # float32 vs float64 rounding of ceil()
     assert_close_grads(cpu, ref, rtol=5e-4 if mode == "RGB+ED" else 2e-4)
 
 

@@ -108,19 +108,32 @@ def render_with(
     far_plane: float,
     backend_name: str,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
-    """Projection + colour evaluation in torch, then ``rasterize`` (C++ or the test reference)."""
+    """Projection + colour evaluation (C++ for the cpu backend, torch otherwise), then ``rasterize``."""
     C = viewmats.shape[0]
     N = means.shape[0]
-    means2d, conics, depths, radii = project_gaussians(
-        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane
-    )
     if sh_degree is not None:
-        if colors.dim() != 3 or colors.shape[-1] != 3:
+        if colors.dim() != 3 or colors.shape[0] != N or colors.shape[-1] != 3:
             raise ValueError(f"with sh_degree, colors must be [N, K, 3]; got {list(colors.shape)}")
-        feats = sh_to_color(sh_degree, means, colors, camera_centers(viewmats))  # [C, N, 3]
+        if not 0 <= sh_degree <= 3 or colors.shape[1] < (sh_degree + 1) ** 2:
+            raise ValueError(f"sh_degree {sh_degree} needs 0..3 and {(sh_degree + 1) ** 2} coefficients, got {colors.shape[1]}")
+    elif colors.dim() != 2 or colors.shape[0] != N:
+        raise ValueError(f"without sh_degree, colors must be [N, D]; got {list(colors.shape)}")
+    if backend_name == "cpu":
+        # projection and SH in C++ (forward and backward)
+        from .cpu import project_cpu
+
+        means2d, conics, depths, radii, sh_colors = project_cpu(
+            means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane,
+            sh=colors if sh_degree is not None else None, sh_degree=sh_degree or 0,
+        )
     else:
-        if colors.dim() != 2 or colors.shape[0] != N:
-            raise ValueError(f"without sh_degree, colors must be [N, D]; got {list(colors.shape)}")
+        means2d, conics, depths, radii = project_gaussians(
+            means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane
+        )
+        sh_colors = sh_to_color(sh_degree, means, colors, camera_centers(viewmats)) if sh_degree is not None else None
+    if sh_colors is not None:
+        feats = sh_colors  # [C, N, 3]
+    else:
         feats = colors[None].expand(C, *colors.shape)
     if render_mode == "RGB+ED":
         feats = torch.cat([feats, depths[..., None]], dim=-1)

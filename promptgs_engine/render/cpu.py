@@ -103,6 +103,87 @@ class RasterizeCPU(torch.autograd.Function):
         )
 
 
+class ProjectCPU(torch.autograd.Function):
+    """EWA projection (and SH colours) in C++ for C cameras.
+
+    Inputs: means [N,3], quats [N,4], scales [N,3], opacities [N], sh [N,K,3] or None,
+    viewmats [C,4,4], Ks [C,3,3]. Outputs: means2d [C,N,2], conics [C,N,3], depths [C,N],
+    radii [C,N,2] int32 (no gradient), colors [C,N,3] (an empty tensor without SH).
+    Gradients flow to means, quats, scales and sh; opacities only set the radii.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any,
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        sh: Tensor | None,
+        viewmats: Tensor,
+        Ks: Tensor,
+        width: int,
+        height: int,
+        sh_degree: int,
+        near_plane: float,
+        far_plane: float,
+        eps2d: float,
+    ):
+        _C = _ext()
+        inputs = (_f32(means), _f32(quats), _f32(scales), _f32(opacities), _f32(sh) if sh is not None else torch.empty(0))
+        cams = [(_f32(viewmats[c]), _f32(Ks[c])) for c in range(viewmats.shape[0])]
+        outs = [
+            _C.project_forward(*inputs, sh_degree, v, k, width, height, near_plane, far_plane, eps2d) for v, k in cams
+        ]
+        means2d, conics, depths, radii, colors = (torch.stack([o[j] for o in outs]) for j in range(5))
+        ctx.inputs, ctx.cams, ctx.has_sh = inputs, cams, sh is not None
+        ctx.args = (sh_degree, width, height, near_plane, far_plane, eps2d)
+        ctx.save_for_backward(radii)
+        ctx.mark_non_differentiable(radii)
+        ctx.dtype = means.dtype
+        return means2d, conics, depths, radii, colors
+
+    @staticmethod
+    def backward(ctx: Any, v_means2d, v_conics, v_depths, _v_radii, v_colors):  # type: ignore[override]
+        (radii,) = ctx.saved_tensors
+        _C = _ext()
+        sh_degree, width, height, near_plane, far_plane, eps2d = ctx.args
+        totals: list[Tensor | None] = [None, None, None, None]
+        for c, (v, k) in enumerate(ctx.cams):
+            vc = _f32(v_colors[c]) if ctx.has_sh and v_colors is not None and v_colors.numel() else torch.empty(0)
+            grads = _C.project_backward(
+                *ctx.inputs, sh_degree, v, k, width, height, near_plane, far_plane, eps2d, radii[c],
+                _f32(v_means2d[c]), _f32(v_conics[c]), _f32(v_depths[c]), vc,
+            )
+            totals = [g if t is None else t + g for t, g in zip(totals, grads)]
+        v_means, v_quats, v_scales, v_sh = (t.to(ctx.dtype) for t in totals)
+        ctx.inputs = ctx.cams = None
+        return (v_means, v_quats, v_scales, None, v_sh if ctx.has_sh else None,
+                None, None, None, None, None, None, None, None)
+
+
+def project_cpu(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+    sh: Tensor | None = None,
+    sh_degree: int = 0,
+    eps2d: float = 0.3,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+    """C++ projection; returns means2d, conics, depths, radii and SH colours [C,N,3] (None without sh)."""
+    means2d, conics, depths, radii, colors = ProjectCPU.apply(
+        means, quats, scales, opacities, sh, viewmats, Ks, width, height, sh_degree, near_plane, far_plane, eps2d
+    )
+    return means2d, conics, depths, radii, (colors if sh is not None else None)
+
+
 def rasterize_cpu(
     means2d: Tensor,
     conics: Tensor,

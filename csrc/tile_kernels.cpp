@@ -1,0 +1,90 @@
+// The per-tile kernels (tile_kernels.inc) compiled once per x86-64 instruction set level,
+// and the choice among them for the running CPU.
+//
+// GCC compiles vector-extension code for the target of the enclosing function, so each
+// variant sits under its own `#pragma GCC target` with a vector width that the level
+// handles natively (16 lanes for AVX-512, 8 for AVX2, 4 for SSE2). Other compilers and
+// architectures get one variant for the build's own target.
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+
+#include "rasterize.h"
+
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#define PROMPTGS_X86_VARIANTS 1
+#endif
+
+#ifdef PROMPTGS_X86_VARIANTS
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wpsabi"
+
+#pragma GCC push_options
+#pragma GCC target("arch=x86-64-v4")
+#define PROMPTGS_NS kernels_avx512
+#define PROMPTGS_VW 16
+namespace promptgs {
+#include "tile_kernels.inc"
+}
+#undef PROMPTGS_NS
+#undef PROMPTGS_VW
+#pragma GCC pop_options
+
+#pragma GCC push_options
+#pragma GCC target("arch=x86-64-v3")
+#define PROMPTGS_NS kernels_avx2
+#define PROMPTGS_VW 8
+namespace promptgs {
+#include "tile_kernels.inc"
+}
+#undef PROMPTGS_NS
+#undef PROMPTGS_VW
+#pragma GCC pop_options
+
+#define PROMPTGS_NS kernels_sse2
+#define PROMPTGS_VW 4
+namespace promptgs {
+#include "tile_kernels.inc"
+}
+#undef PROMPTGS_NS
+#undef PROMPTGS_VW
+
+#pragma GCC diagnostic pop
+
+#else  // one variant for the build target
+
+#if defined(__AVX512F__)
+#define PROMPTGS_VW 16
+#elif defined(__AVX2__)
+#define PROMPTGS_VW 8
+#else
+#define PROMPTGS_VW 4
+#endif
+#define PROMPTGS_NS kernels_native
+namespace promptgs {
+#include "tile_kernels.inc"
+}
+#undef PROMPTGS_NS
+#undef PROMPTGS_VW
+
+#endif
+
+namespace promptgs {
+
+const TileKernels& tile_kernels() {
+    static const TileKernels chosen = [] {
+#ifdef PROMPTGS_X86_VARIANTS
+        __builtin_cpu_init();
+        if (__builtin_cpu_supports("x86-64-v4"))
+            return TileKernels{kernels_avx512::forward_tile, kernels_avx512::backward_tile, "avx512"};
+        if (__builtin_cpu_supports("x86-64-v3"))
+            return TileKernels{kernels_avx2::forward_tile, kernels_avx2::backward_tile, "avx2"};
+        return TileKernels{kernels_sse2::forward_tile, kernels_sse2::backward_tile, "sse2"};
+#else
+        return TileKernels{kernels_native::forward_tile, kernels_native::backward_tile, "native"};
+#endif
+    }();
+    return chosen;
+}
+
+}  // namespace promptgs
