@@ -14,6 +14,7 @@
 #pragma once
 
 
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <vector>
@@ -26,12 +27,25 @@ constexpr float kAlphaThreshold = 1.0f / 255.0f;
 constexpr float kMaxAlpha = 0.999f;
 constexpr float kTransmittanceEps = 1e-4f;
 
+// A Gaussian of opacity o can only reach alpha >= 1/255 where sigma <= ln(255 o); the small
+// margin keeps the exact cut-offs below (rows, tiles) conservative against rounding.
+inline float sigma_cutoff(float opacity) { return std::log(opacity * 255.f) + 1e-3f; }
+
+// Half-extents (x, y) of the ellipse sigma <= L for the conic (a, b, c); false if degenerate.
+inline bool ellipse_extent(float a, float b, float c, float L, float& ex, float& ey) {
+    const float det = a * c - b * b;
+    if (!(det > 0.f) || !(L > 0.f)) return false;
+    ex = std::sqrt(2.f * L * c / det);
+    ey = std::sqrt(2.f * L * a / det);
+    return std::isfinite(ex) && std::isfinite(ey);
+}
+
 // Per-Gaussian data the tile loops read, packed into one 32-byte record.
 struct alignas(32) Splat {
     float x, y;     // mean2d
     float a, b, c;  // conic
     float opacity;
-    float ry;       // vertical radius in pixels: bounds the rows a Gaussian can touch
+    float ry;       // half-height of the ellipse where alpha can reach 1/255 (rows it can touch)
     float pad;
 };
 
