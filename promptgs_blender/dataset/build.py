@@ -20,6 +20,7 @@ class BuiltScene:
     terrain: Any
     drones: list[Any] = field(default_factory=list)  # in layout order (id = index + 1)
     flames: list[Any] = field(default_factory=list)  # flame meshes and their lights
+    sky_dome: Any = None
 
 
 def _mesh_object(name: str, verts: np.ndarray, faces: list[list[int]], collection: Any) -> Any:
@@ -118,13 +119,17 @@ def _flame_material(strength: float) -> Any:
     return mat
 
 
-def _plain_material(name: str, colour: tuple[float, float, float], roughness: float) -> Any:
+def _plain_material(name: str, colour: tuple[float, float, float], roughness: float, glow: float = 0.0) -> Any:
+    """Principled surface; ``glow`` > 0 adds emission in the same colour (navigation lights)."""
     mat = bpy.data.materials.new(name)
     mat.use_nodes = True
     tree, out = _nodes(mat)
     bsdf = tree.nodes.new("ShaderNodeBsdfPrincipled")
     bsdf.inputs["Base Color"].default_value = (*colour, 1.0)
     bsdf.inputs["Roughness"].default_value = roughness
+    if glow > 0:
+        bsdf.inputs["Emission Color"].default_value = (*colour, 1.0)
+        bsdf.inputs["Emission Strength"].default_value = glow
     tree.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
     return mat
 
@@ -140,26 +145,64 @@ def _sun_direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
     return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
 
 
-def _world(scene: Any, sun: dict[str, float]) -> None:
-    world = bpy.data.worlds.new("sky")
+SKY_AMBIENT = (0.42, 0.55, 0.8)  # colour of the uniform sky light
+
+
+def _world(scene: Any, collection: Any, sun: dict[str, float]) -> Any:
+    """Uniform sky light plus a sky dome that only camera rays see.
+
+    Cycles renders a constant world much faster than a textured one (no importance map, no
+    shader evaluation per bounce), so the physical sky texture sits on a far dome visible to
+    the camera alone, and the light from the sky is a uniform blue.
+    """
+    world = bpy.data.worlds.new("sky_light")
     scene.world = world
     world.use_nodes = True
     tree = world.node_tree
     tree.nodes.clear()
-    sky = tree.nodes.new("ShaderNodeTexSky")
-    sky.sky_type = "MULTIPLE_SCATTERING" if "MULTIPLE_SCATTERING" in {
-        e.identifier for e in sky.bl_rna.properties["sky_type"].enum_items} else sky.sky_type
+    bg = tree.nodes.new("ShaderNodeBackground")
+    bg.inputs["Color"].default_value = (*SKY_AMBIENT, 1.0)
+    bg.inputs["Strength"].default_value = 0.6
+    out = tree.nodes.new("ShaderNodeOutputWorld")
+    tree.links.new(bg.outputs["Background"], out.inputs["Surface"])
+    world.color = (0.0, 0.0, 0.0)  # what the mask (Workbench) pass shows behind everything
+
+    mat = bpy.data.materials.new("sky_dome")
+    mat.use_nodes = True
+    mtree, mout = _nodes(mat)
+    geo = mtree.nodes.new("ShaderNodeNewGeometry")
+    sky = mtree.nodes.new("ShaderNodeTexSky")
+    if "MULTIPLE_SCATTERING" in {e.identifier for e in sky.bl_rna.properties["sky_type"].enum_items}:
+        sky.sky_type = "MULTIPLE_SCATTERING"
     if hasattr(sky, "sun_elevation"):
         sky.sun_elevation = math.radians(sun["elevation_deg"])
         sky.sun_rotation = math.radians(sun["azimuth_deg"] + 90.0)
     if hasattr(sky, "sun_disc"):
-        sky.sun_disc = False  # the sun lamp gives the direct light and sharp shadows
-    bg = tree.nodes.new("ShaderNodeBackground")
-    bg.inputs["Strength"].default_value = 0.15
-    out = tree.nodes.new("ShaderNodeOutputWorld")
-    tree.links.new(sky.outputs["Color"], bg.inputs["Color"])
-    tree.links.new(bg.outputs["Background"], out.inputs["Surface"])
-    world.color = (0.0, 0.0, 0.0)  # what the mask (Workbench) pass shows behind everything
+        sky.sun_disc = False
+    norm = mtree.nodes.new("ShaderNodeVectorMath")
+    norm.operation = "NORMALIZE"
+    mtree.links.new(geo.outputs["Position"], norm.inputs[0])
+    mtree.links.new(norm.outputs["Vector"], sky.inputs["Vector"])
+    emit = mtree.nodes.new("ShaderNodeEmission")
+    emit.inputs["Strength"].default_value = 0.15
+    mtree.links.new(sky.outputs["Color"], emit.inputs["Color"])
+    mtree.links.new(emit.outputs["Emission"], mout.inputs["Surface"])
+
+    radius, rings, segs = 1500.0, 16, 48
+    verts = []
+    for j in range(rings + 1):
+        el = math.radians(-10.0 + 100.0 * j / rings)
+        for i in range(segs):
+            az = 2 * math.pi * i / segs
+            verts.append((radius * math.cos(el) * math.cos(az), radius * math.cos(el) * math.sin(az), radius * math.sin(el)))
+    faces = [[j * segs + i, j * segs + (i + 1) % segs, (j + 1) * segs + (i + 1) % segs, (j + 1) * segs + i]
+             for j in range(rings) for i in range(segs)]
+    dome = _mesh_object("sky_dome", np.array(verts), faces, collection)
+    dome.data.materials.append(mat)
+    dome.color = (0.0, 0.0, 0.0, 1.0)
+    for ray in ("visible_diffuse", "visible_glossy", "visible_transmission", "visible_volume_scatter", "visible_shadow"):
+        setattr(dome, ray, False)
+    return dome
 
 
 def build_scene(terrain: Terrain, layout: dict[str, Any], params: dict[str, Any]) -> BuiltScene:
@@ -181,7 +224,7 @@ def build_scene(terrain: Terrain, layout: dict[str, Any], params: dict[str, Any]
 
     # Flames, each with a warm point light for the glow on the ground
     built_flames = []
-    flame_mat = _flame_material(strength=6.0)
+    flame_mat = _flame_material(strength=3.0)
     for f in layout["flames"]:
         verts, faces, rgba = geometry.flame_mesh(f["mesh_seed"], f["height"], f["radius"], f["n_tongues"])
         obj = _mesh_object(f"flame_{f['id']}", verts, faces, coll)
@@ -206,7 +249,7 @@ def build_scene(terrain: Terrain, layout: dict[str, Any], params: dict[str, Any]
         if d["color_name"] not in materials:
             c = tuple(d["color"])
             materials[d["color_name"]] = (
-                _plain_material(f"drone_{d['color_name']}", c, 0.35),
+                _plain_material(f"drone_{d['color_name']}", c, 0.35, glow=float(params["drone_glow"])),
                 _plain_material(f"rotor_{d['color_name']}", tuple(0.45 * x + 0.02 for x in c), 0.5),
             )
         frame_mat, rotor_mat = materials[d["color_name"]]
@@ -225,7 +268,7 @@ def build_scene(terrain: Terrain, layout: dict[str, Any], params: dict[str, Any]
 
     # Sun and sky
     sun = layout["sun"]
-    _world(scene, sun)
+    dome = _world(scene, coll, sun)
     sun_light = bpy.data.lights.new("sun", "SUN")
     sun_light.energy = 4.0
     sun_light.angle = math.radians(1.5)
@@ -272,7 +315,7 @@ def build_scene(terrain: Terrain, layout: dict[str, Any], params: dict[str, Any]
     scene.view_settings.view_transform = "AgX"
     scene.view_settings.look = "AgX - Medium High Contrast"
     scene.render.use_persistent_data = True
-    return BuiltScene(scene=scene, camera=cam_obj, terrain=terrain_obj, drones=drones, flames=built_flames)
+    return BuiltScene(scene=scene, camera=cam_obj, terrain=terrain_obj, drones=drones, flames=built_flames, sky_dome=dome)
 
 
 def _matrix(m: np.ndarray) -> Any:

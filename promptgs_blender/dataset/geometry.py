@@ -47,20 +47,21 @@ def drone_parts() -> dict[str, Mesh]:
     Its bounding box is ``layout.DRONE_BOX_MIN .. DRONE_BOX_MAX``. Returns the frame (body,
     arms, skids) and the rotor discs as separate meshes for two materials.
     """
-    frame = [box((-0.18, -0.18, -0.07), (0.18, 0.18, 0.05))]
+    frame = [box((-0.2, -0.2, -0.09), (0.2, 0.2, 0.07))]  # body
+    frame.append(box((-0.08, -0.08, -0.16), (0.08, 0.08, -0.09)))  # camera gimbal
     for yaw in (math.pi / 4, -math.pi / 4):
-        frame.append(box((-0.47, -0.045, -0.01), (0.47, 0.045, 0.035), yaw))
+        frame.append(box((-0.47, -0.05, -0.01), (0.47, 0.05, 0.05), yaw))  # arms
     for side in (-1, 1):
-        frame.append(box((-0.16, side * 0.1 - 0.015, -0.12), (0.16, side * 0.1 + 0.015, -0.10)))
-        frame.append(box((-0.015, side * 0.1 - 0.015, -0.10), (0.015, side * 0.1 + 0.015, -0.07)))
+        frame.append(box((-0.2, side * 0.14 - 0.02, -0.2), (0.2, side * 0.14 + 0.02, -0.17)))  # skids
+        frame.append(box((-0.02, side * 0.14 - 0.02, -0.17), (0.02, side * 0.14 + 0.02, -0.09)))
     rotors = []
     for sx in (-1, 1):
         for sy in (-1, 1):
-            rotors.append(cylinder((sx * 0.31, sy * 0.31, 0.05), 0.19, 0.02))
+            rotors.append(cylinder((sx * 0.31, sy * 0.31, 0.05), 0.19, 0.04))
     return {"frame": merge(frame), "rotors": merge(rotors)}
 
 
-FLAME_COLOURS = np.array([[1.0, 0.9, 0.55], [1.0, 0.55, 0.08], [0.9, 0.22, 0.02], [0.45, 0.05, 0.01]])
+FLAME_COLOURS = np.array([[1.0, 0.72, 0.18], [1.0, 0.36, 0.03], [0.85, 0.13, 0.01], [0.4, 0.03, 0.005]])
 
 
 def _flame_colour(t: np.ndarray, warmth: float) -> np.ndarray:

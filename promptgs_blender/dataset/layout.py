@@ -25,8 +25,8 @@ import numpy as np
 from .terrain import Terrain, make_terrain
 
 # Unit drone (size 1 across, origin at the body centre): the half extents of its bounding box.
-DRONE_BOX_MIN = np.array([-0.5, -0.5, -0.12])
-DRONE_BOX_MAX = np.array([0.5, 0.5, 0.07])
+DRONE_BOX_MIN = np.array([-0.5, -0.5, -0.2])
+DRONE_BOX_MAX = np.array([0.5, 0.5, 0.09])
 
 DRONE_COLORS: list[tuple[str, tuple[float, float, float]]] = [
     ("white", (0.9, 0.9, 0.9)),

@@ -2,7 +2,7 @@
 
 Instance masks: every drone object gets a flat colour that encodes its id; the Workbench
 engine renders them without anti-aliasing at ``mask_supersample`` times the image size
-(terrain black, flames hidden so drones behind a flame still count), and each image pixel
+(terrain black; flames and sky dome hidden, so drones behind a flame still count), and each image pixel
 takes the id that covers most of its sub-pixels (0 where none does). A drone that covers
 any sub-pixel of a pixel is therefore in the mask, as it tints that pixel in the image.
 """
@@ -101,7 +101,8 @@ def render_masks(built: BuiltScene, cameras: list[dict[str, Any]], folder: Path,
     scene.render.dither_intensity = 0.0
     scene.render.resolution_x = width * factor
     scene.render.resolution_y = height * factor
-    for obj in built.flames:
+    hidden = built.flames + ([built.sky_dome] if built.sky_dome is not None else [])
+    for obj in hidden:
         obj.hide_render = True
     for k, obj in enumerate(built.drones):
         obj.color = _id_colour(k + 1)
@@ -115,7 +116,7 @@ def render_masks(built: BuiltScene, cameras: list[dict[str, Any]], folder: Path,
             progress("masks", i + 1, len(cameras))
     finally:
         tmp.unlink(missing_ok=True)
-        for obj in built.flames:
+        for obj in hidden:
             obj.hide_render = False
         scene.render.engine = saved["engine"]
         scene.render.resolution_x, scene.render.resolution_y = width, height

@@ -72,18 +72,23 @@ def run_generator(
         )
     except OSError as exc:
         raise DatasetError(f"cannot start Blender ({blender or sys.executable}): {exc}") from exc
-    with open(log_path, "w") as log:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("PROMPTGS_PROGRESS "):
-                if progress is not None:
-                    msg = json.loads(line.split(" ", 1)[1])
-                    progress(msg["stage"], int(msg["done"]), int(msg["total"]))
-            elif line.startswith("PROMPTGS_ERROR "):
-                error = line.split(" ", 1)[1].strip()
-            else:
-                log.write(line)
-    code = proc.wait()
+    try:
+        with open(log_path, "w") as log:
+            assert proc.stdout is not None
+            for line in proc.stdout:
+                if line.startswith("PROMPTGS_PROGRESS "):
+                    if progress is not None:
+                        msg = json.loads(line.split(" ", 1)[1])
+                        progress(msg["stage"], int(msg["done"]), int(msg["total"]))
+                elif line.startswith("PROMPTGS_ERROR "):
+                    error = line.split(" ", 1)[1].strip()
+                else:
+                    log.write(line)
+        code = proc.wait()
+    finally:
+        if proc.poll() is None:  # interrupted (Ctrl-C) or failed while reading: stop Blender too
+            proc.kill()
+            proc.wait()
     if error is not None:
         raise DatasetError(error)
     if code != 0:

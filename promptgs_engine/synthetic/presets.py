@@ -13,19 +13,20 @@ from typing import Any
 COMMON: dict[str, Any] = {
     "seed": 0,
     "fov_deg": 60.0,  # horizontal field of view of the pinhole camera
-    "target_height": 12.0,  # cameras look at a point this high over the valley centre (m)
+    "target_height": 14.0,  # cameras look at a point this high over the valley centre (m)
     "target_jitter": 4.0,  # per-view random offset of the look-at point (m)
     "camera_clearance": 8.0,  # cameras stay at least this high above the ground (m)
     "terrain_size": 260.0,  # edge of the square terrain (m)
-    "rim_height": 38.0,  # height of the peaks ringing the valley (m)
-    "snow_line": 30.0,  # snow above this height (m)
-    "flame_height": 4.0,  # mean flame height (m)
+    "rim_height": 30.0,  # height of the peaks ringing the valley (m)
+    "snow_line": 25.0,  # snow above this height (m)
+    "flame_height": 5.5,  # mean flame height (m)
     "flame_region_radius": 25.0,  # flames stand within this distance of the valley centre (m)
     "drone_region_radius": 12.0,  # drone groups float within this distance of the centre (m)
     "drone_group_radius": 6.0,  # spread of the drones of one group (m)
     "drone_altitude": [4.0, 16.0],  # drone group heights above the ground (m)
     "drone_max_px_1080": 10.0,  # the paper's limit: at most 10 px across in 1080p images
-    "min_visible_px": 1.5,  # a view sees a drone only when it is at least this many px across
+    "min_visible_px": 1.5,
+    "drone_glow": 1.5,  # emission of the drone frames in their own colour (lights), so 2-px drones show  # a view sees a drone only when it is at least this many px across
     "test_every": 8,  # held-out views: every 8th image in name order (index % 8 == 0)
     "sun_elevation_deg": 38.0,
     "sun_azimuth_deg": None,  # None: drawn from the seed
@@ -40,7 +41,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "height": 270,
         "samples": 4,
         "terrain_resolution": 160,
-        "camera_rings": [{"count": 12, "radius": 50.0, "altitude": 5.0, "arc_deg": 110.0, "start_deg": 200.0}],
+        "camera_rings": [{"count": 12, "radius": 45.0, "altitude": 5.0, "arc_deg": 110.0, "start_deg": 200.0}],
         "n_flames": 1,
         "n_drones": 6,
         "n_drone_groups": 2,
@@ -52,8 +53,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "samples": 16,
         "terrain_resolution": 256,
         "camera_rings": [
-            {"count": 24, "radius": 55.0, "altitude": 5.0, "arc_deg": 360.0, "start_deg": 0.0},
-            {"count": 16, "radius": 40.0, "altitude": 16.0, "arc_deg": 360.0, "start_deg": 11.25},
+            {"count": 24, "radius": 46.0, "altitude": 5.0, "arc_deg": 360.0, "start_deg": 0.0},
+            {"count": 16, "radius": 34.0, "altitude": 14.0, "arc_deg": 360.0, "start_deg": 11.25},
         ],
         "n_flames": 2,
         "n_drones": 16,
@@ -66,9 +67,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "samples": 64,
         "terrain_resolution": 512,
         "camera_rings": [
-            {"count": 48, "radius": 58.0, "altitude": 5.0, "arc_deg": 360.0, "start_deg": 0.0},
-            {"count": 40, "radius": 45.0, "altitude": 14.0, "arc_deg": 360.0, "start_deg": 4.5},
-            {"count": 32, "radius": 32.0, "altitude": 26.0, "arc_deg": 360.0, "start_deg": 9.0},
+            {"count": 48, "radius": 48.0, "altitude": 5.0, "arc_deg": 360.0, "start_deg": 0.0},
+            {"count": 40, "radius": 38.0, "altitude": 12.0, "arc_deg": 360.0, "start_deg": 4.5},
+            {"count": 32, "radius": 28.0, "altitude": 22.0, "arc_deg": 360.0, "start_deg": 9.0},
         ],
         "n_flames": 3,
         "n_drones": 40,
