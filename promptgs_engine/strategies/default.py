@@ -35,11 +35,16 @@ class DefaultSchedule:
 
     @classmethod
     def for_iterations(cls, iterations: int) -> "DefaultSchedule":
+        """Start, stop, reset and SH steps scale with the run; the refinement interval
+        does not go below ``iterations / 20`` (capped at 100), so a short run gets a few
+        growth rounds on settled gradients rather than dozens on noisy ones (scaling it
+        down to 10 steps as gsplat's ``steps_scaler`` would multiplies the Gaussian count
+        tenfold on a 600-step run)."""
         s = min(1.0, iterations / _REFERENCE_ITERATIONS)
         return cls(
             refine_start_iter=max(1, round(500 * s)),
             refine_stop_iter=max(2, round(15_000 * s)),
-            refine_every=max(10, round(100 * s)),
+            refine_every=max(10, round(100 * s), min(100, iterations // 20)),
             reset_every=max(100, round(3000 * s)),
             sh_degree_interval=max(50, round(1000 * s)),
         )

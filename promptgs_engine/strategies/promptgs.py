@@ -234,8 +234,12 @@ def carve_prompt(
     for cam, rendered, gt in views:
         err = (rendered - gt).abs().mean(dim=-1)  # [H, W]
         thr = max(error_threshold, 3.0 * float(err.median()))
-        err = F.max_pool2d(err[None, None], 3, stride=1, padding=1)[0, 0]
+        # 3×3 max: a point hits if any neighbour pixel is wrong; its colour is read at
+        # that worst pixel (the object's, not the background next to it).
+        err, worst = F.max_pool2d(err[None, None], 3, stride=1, padding=1, return_indices=True)
+        err, worst = err[0, 0], worst[0, 0]
         h, w = err.shape
+        gt_flat = gt.reshape(-1, 3)
         cam_pts = points @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
         z = cam_pts[:, 2]
         uv = cam_pts[:, :2] / z.clamp_min(1e-6)[:, None] * torch.stack([cam.K[0, 0], cam.K[1, 1]]) + torch.stack([cam.K[0, 2], cam.K[1, 2]])
@@ -245,7 +249,7 @@ def carve_prompt(
         seen[idx] += 1
         hit = err[py[idx], px[idx]] > thr
         hits[idx[hit]] += 1
-        color_sum[idx[hit]] += gt[py[idx[hit]], px[idx[hit]]]
+        color_sum[idx[hit]] += gt_flat[worst[py[idx[hit]], px[idx[hit]]]]
     keep = (seen >= min_views) & (hits >= min_vote * seen)
     idx = torch.where(keep)[0]
     if idx.numel() == 0:

@@ -1,0 +1,179 @@
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from promptgs_engine.config import TrainConfig
+from promptgs_engine.data import Camera
+from promptgs_engine.focus import crop_camera
+from promptgs_engine.gaussians import init_from_points
+from promptgs_engine.prompts import PromptBox
+from promptgs_engine.render import render
+from promptgs_engine.strategies.promptgs import PromptGSStrategy, append_gaussians, carve_prompt
+from promptgs_engine.train import make_optimizers
+
+
+def _params(points, opacity=0.5):
+    n = points.shape[0]
+    p = init_from_points(points, torch.full((n, 3), 0.5), sh_degree=1, init_opacity=opacity)
+    with torch.no_grad():
+        p["scales"].fill_(math.log(0.001))  # small: growth clones them in place
+    return p, make_optimizers(p, TrainConfig(dataset="d", out="o"), extent=1.0)
+
+
+def _strategy(prompts, **kw):
+    s = PromptGSStrategy(refine_start_iter=0, refine_stop_iter=10_000, refine_every=100, reset_every=10_000, prompts=prompts, **kw)
+    return s, s.initialize_state(scene_scale=1.0)
+
+
+def _info(n, grads, view_loss=1.0, w=100, h=100):
+    means2d = torch.full((1, n, 2), 50.0, requires_grad=True)
+    means2d.grad = grads.reshape(1, n, 2)
+    return {
+        "means2d": means2d,
+        "radii": torch.full((1, n, 2), 3, dtype=torch.int32),
+        "depths": torch.full((1, n), 2.0),
+        "width": w,
+        "height": h,
+        "n_cameras": 1,
+        "gaussian_ids": None,
+        "view_loss": torch.tensor([view_loss]),
+        "error_map": torch.ones(1, h, w),
+    }
+
+
+UNIT_BOX = PromptBox(center=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0))
+
+
+def test_prompt_lowers_the_growth_threshold_only_inside_the_box():
+    pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])  # inside, outside
+    params, opts = _params(pts)
+    s, state = _strategy([UNIT_BOX], outside_keep=1.0)
+    # Both have a mean gradient at half the 3DGS threshold (after gsplat's w/2 scaling).
+    g = 0.5 * s.grow_grad2d / (100 / 2.0)
+    s._update_state(params, state, _info(2, torch.tensor([[g, 0.0], [g, 0.0]])))
+    n_dupli, n_split = s._grow_gs(params, opts, state, step=100)
+    assert n_dupli + n_split == 1
+    assert params["means"].shape[0] == 3
+    # The new Gaussian is a clone of the one in the box, and is marked as born now.
+    assert torch.equal(params["means"][-1].detach(), pts[0])
+    assert state["born"][-1] == 100
+
+
+def test_score_ranks_a_large_gradient_in_a_high_loss_view_above_an_idle_gaussian():
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    params, _ = _params(pts)
+    s, state = _strategy([UNIT_BOX])
+    g = 2 * s.grow_grad2d / 50.0
+    s._update_state(params, state, _info(2, torch.tensor([[g, 0.0], [0.0, 0.0]]), view_loss=0.5))
+    score, error = s.per_gaussian(params, state)
+    assert score[0] > score[1] > 0
+    # The same gradients in a view with twice the loss give twice the score increment.
+    s2, state2 = _strategy([UNIT_BOX])
+    s2._update_state(params, state2, _info(2, torch.tensor([[g, 0.0], [0.0, 0.0]]), view_loss=1.0))
+    assert torch.allclose(state2["score"], 2 * state["score"])
+    assert torch.allclose(error, torch.ones(2))
+
+
+def test_budget_caps_growth_and_prefers_prompt_candidates():
+    pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
+    params, opts = _params(pts)
+    s, state = _strategy([UNIT_BOX], budget=4, outside_keep=1.0)
+    g = 10 * s.grow_grad2d / 50.0  # everyone far above threshold
+    s._update_state(params, state, _info(3, torch.tensor([[g, 0.0]] * 3)))
+    s._grow_gs(params, opts, state, step=100)
+    assert params["means"].shape[0] == 4
+    grown_from_inside = (params["means"][3:].detach().norm(dim=-1) < 1.0).all()
+    assert bool(grown_from_inside)
+
+
+def test_young_gaussians_in_prompts_survive_the_opacity_prune():
+    pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    params, opts = _params(pts, opacity=0.001)  # both below prune_opa
+    s, state = _strategy([UNIT_BOX], protect_steps=500)
+    s._ensure_state(params, state)
+    state["born"][:] = 100.0
+    assert s._prune_gs(params, opts, state, step=200) == 1  # only the one outside
+    assert params["means"].shape[0] == 1 and float(params["means"][0].detach().abs().max()) == 0.0
+    assert s._prune_gs(params, opts, state, step=700) == 1  # protection has expired
+
+
+def test_append_gaussians_extends_parameters_optimizer_state_and_strategy_state():
+    params, opts = _params(torch.randn(5, 3))
+    s, state = _strategy([UNIT_BOX])
+    s._ensure_state(params, state)
+    loss = sum(p.sum() for p in params.values())
+    loss.backward()
+    for o in opts.values():
+        o.step()
+    added = append_gaussians(params, opts, state, torch.zeros(3, 3), torch.full((3, 3), 0.5), scale=0.01, opacity=0.5, step=42)
+    assert added == 3 and params["means"].shape[0] == 8
+    for k, o in opts.items():
+        st = o.state[params[k]]
+        assert st["exp_avg"].shape == params[k].shape
+        assert torch.all(st["exp_avg"][5:] == 0)
+    assert state["born"].shape[0] == 8 and torch.all(state["born"][5:] == 42)
+    assert torch.allclose(torch.exp(params["scales"][5:]), torch.full((3, 3), 0.01))
+
+
+def _camera(center, target, size=64, f=60.0):
+    forward = np.asarray(target, float) - center
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    R = np.stack([right, down, forward])
+    m = np.eye(4)
+    m[:3, :3] = R
+    m[:3, 3] = -R @ center
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]], dtype=torch.float32)
+    return Camera("c", size, size, K, torch.tensor(m, dtype=torch.float32), Path("none"))
+
+
+def _render_points(means, color, cam, bg, scale=0.03):
+    n = means.shape[0]
+    img, _, _ = render(
+        means, torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n, 3), scale), torch.full((n,), 0.99),
+        color.repeat(n, 1), cam.world_to_camera[None], cam.K[None], cam.width, cam.height,
+        backgrounds=bg[None], backend="cpu",
+    )
+    return img[0]
+
+
+def test_carving_finds_a_missing_object_inside_the_box_only():
+    obj = torch.tensor([[0.2, -0.1, 0.1]])
+    bg = torch.tensor([0.2, 0.3, 0.4])
+    views = []
+    for a in np.linspace(0, 2 * math.pi, 6, endpoint=False):
+        cam = _camera(np.array([3 * math.cos(a), 3 * math.sin(a), 1.0]), [0, 0, 0])
+        gt = _render_points(obj, torch.tensor([[1.0, 0.9, 0.1]]), cam, bg, scale=0.06)  # ~2 px across
+        current = torch.ones_like(gt) * bg  # the model has no object yet
+        views.append((cam, current, gt))
+    box = PromptBox(center=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0))
+    carved = carve_prompt(box, views)
+    assert carved.means.shape[0] > 0
+    assert bool(box.contains(carved.means).all())
+    # The visual hull of the object (its ~2σ footprint, one pixel of dilation, one voxel)
+    # from 6 views: local to the object and through it, not spread over the 1 m box.
+    dist = (carved.means - obj).norm(dim=-1)
+    assert float(dist.max()) < 0.4 and float(dist.min()) < 0.05
+    grid_points = math.prod(math.ceil(1.0 / carved.voxel) for _ in range(3))
+    assert carved.means.shape[0] < 0.1 * grid_points
+    # At the object the colour is the object's (hull-edge points see blended pixels).
+    assert torch.allclose(carved.colors[dist.argmin()], torch.tensor([1.0, 0.9, 0.1]), atol=0.2)
+    # With a correct model nothing is wrong and nothing is carved.
+    explained = [(c, gt, gt) for c, _, gt in views]
+    assert carve_prompt(box, explained).means.shape[0] == 0
+
+
+def test_crop_camera_renders_the_crop_of_the_full_image():
+    cam = _camera(np.array([3.0, 0.5, 1.0]), [0, 0, 0])
+    g = torch.Generator().manual_seed(0)
+    means = torch.randn(40, 3, generator=g) * 0.5
+    cols = torch.rand(40, 3, generator=g)
+    full = _render_points(means, cols[:1], cam, torch.zeros(3))
+    crop = crop_camera(cam, 10, 20, 32, 24)
+    part = _render_points(means, cols[:1], crop, torch.zeros(3))
+    assert torch.allclose(part, full[20:44, 10:42], atol=1e-5)
