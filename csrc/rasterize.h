@@ -84,17 +84,24 @@ constexpr int kGradFixed = 8;
 
 // Per-tile kernels for one instruction set, picked once at load time from what the CPU
 // supports (AVX-512, AVX2+FMA or the baseline; see tile_kernels.cpp).
+//
+// Entry c of forward/backward is specialised for c channels (c = 1..kMaxChannelsFixed);
+// entry 0 takes any channel count. Use kernel_for() to pick.
+constexpr int kMaxChannelsFixed = 5;
 struct TileKernels {
     // Composites tile (x0, y0) from ranks ids[start, end); acc is D*256 floats of scratch.
-    void (*forward)(const TileArgs& a, const Splat* splats, const float* colors, int start, int end, int x0,
-                    int y0, float* acc);
+    using Forward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int end, int x0,
+                             int y0, float* acc);
     // Backward for tile (x0, y0); scratch dcol and buf are D*256 floats, vcol D*16 floats;
     // adds per-rank gradients into G (stride kGradFixed + D).
-    void (*backward)(const TileArgs& a, const Splat* splats, const float* colors, int start, int x0, int y0,
-                     float* dcol, float* buf, float* vcol, float* G);
+    using Backward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int x0, int y0,
+                              float* dcol, float* buf, float* vcol, float* G);
+    Forward forward[kMaxChannelsFixed + 1];
+    Backward backward[kMaxChannelsFixed + 1];
     const char* name;
 };
 const TileKernels& tile_kernels();
+inline int kernel_for(int64_t channels) { return channels <= kMaxChannelsFixed ? static_cast<int>(channels) : 0; }
 
 // Inputs of one image. Arrays are float32 / int32, contiguous, N rows.
 struct RasterInputs {

@@ -37,7 +37,7 @@ void rasterize_backward(const RasterInputs& in, const TileBins& bins, const floa
     args.last_ids = last_ids;
     args.grad_colors = grad_colors;
     args.grad_alphas = grad_alphas;
-    const TileKernels& kernels = tile_kernels();
+    const TileKernels::Backward backward = tile_kernels().backward[kernel_for(D)];
 
 #pragma omp parallel num_threads(n_threads)
     {
@@ -50,7 +50,7 @@ void rasterize_backward(const RasterInputs& in, const TileBins& bins, const floa
         for (int tile = 0; tile < n_tiles; ++tile) {
             const int start = bins.offsets[tile], end = bins.offsets[tile + 1];
             if (start == end) continue;
-            kernels.backward(args, splats.data(), colors.data(), start, (tile % bins.tiles_x) * kTile,
+            backward(args, splats.data(), colors.data(), start, (tile % bins.tiles_x) * kTile,
                              (tile / bins.tiles_x) * kTile, dcol.data(), buf.data(), vcol.data(), gbuf.data());
         }
 

@@ -207,13 +207,13 @@ void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_
     args.out_colors = out_colors;
     args.out_alphas = out_alphas;
     args.out_last = last_ids;
-    const TileKernels& kernels = tile_kernels();
+    const TileKernels::Forward forward = tile_kernels().forward[kernel_for(in.d)];
 #pragma omp parallel
     {
         std::vector<float> acc(static_cast<size_t>(in.d) * kTilePixels);
 #pragma omp for schedule(dynamic, 1)
         for (int tile = 0; tile < n_tiles; ++tile) {
-            kernels.forward(args, splats.data(), colors.data(), bins.offsets[tile], bins.offsets[tile + 1],
+            forward(args, splats.data(), colors.data(), bins.offsets[tile], bins.offsets[tile + 1],
                             (tile % bins.tiles_x) * kTile, (tile / bins.tiles_x) * kTile, acc.data());
         }
     }

@@ -71,17 +71,29 @@ namespace promptgs {
 
 namespace promptgs {
 
+namespace {
+
+#define PROMPTGS_KERNEL_TABLE(NS, NAME)                                                                  \
+    TileKernels {                                                                                         \
+        {NS::forward_tile<0>, NS::forward_tile<1>, NS::forward_tile<2>, NS::forward_tile<3>,              \
+         NS::forward_tile<4>, NS::forward_tile<5>},                                                       \
+            {NS::backward_tile<0>, NS::backward_tile<1>, NS::backward_tile<2>, NS::backward_tile<3>,      \
+             NS::backward_tile<4>, NS::backward_tile<5>},                                                 \
+            NAME                                                                                          \
+    }
+
+}  // namespace
+
 const TileKernels& tile_kernels() {
+    static_assert(kMaxChannelsFixed == 5, "update PROMPTGS_KERNEL_TABLE");
     static const TileKernels chosen = [] {
 #ifdef PROMPTGS_X86_VARIANTS
         __builtin_cpu_init();
-        if (__builtin_cpu_supports("x86-64-v4"))
-            return TileKernels{kernels_avx512::forward_tile, kernels_avx512::backward_tile, "avx512"};
-        if (__builtin_cpu_supports("x86-64-v3"))
-            return TileKernels{kernels_avx2::forward_tile, kernels_avx2::backward_tile, "avx2"};
-        return TileKernels{kernels_sse2::forward_tile, kernels_sse2::backward_tile, "sse2"};
+        if (__builtin_cpu_supports("x86-64-v4")) return PROMPTGS_KERNEL_TABLE(kernels_avx512, "avx512");
+        if (__builtin_cpu_supports("x86-64-v3")) return PROMPTGS_KERNEL_TABLE(kernels_avx2, "avx2");
+        return PROMPTGS_KERNEL_TABLE(kernels_sse2, "sse2");
 #else
-        return TileKernels{kernels_native::forward_tile, kernels_native::backward_tile, "native"};
+        return PROMPTGS_KERNEL_TABLE(kernels_native, "native");
 #endif
     }();
     return chosen;
