@@ -1,4 +1,4 @@
-"""The ``promptgs`` command line: train, eval, render (and dataset, bench when present).
+"""The promptgs command line: train, eval, render, dataset.
 
 Bad input ends with a one-line ``promptgs: error: …`` on stderr and exit code 2.
 """
@@ -126,6 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train(sub)
     _add_eval(sub)
     _add_render(sub)
+    from .synthetic.cli import add_parser as add_dataset
+
+    add_dataset(sub)
     return parser
 
 

@@ -1,0 +1,150 @@
+"""The trainer and the CLI end to end, on the real tumbler scene and a small toy scene."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from promptgs_engine.bench.toy_scene import ToySceneConfig, make_toy_scene
+from promptgs_engine.cli import main
+from promptgs_engine.config import TrainConfig
+from promptgs_engine.data import load_colmap_scene
+from promptgs_engine.errors import TrainingError
+from promptgs_engine.evaluation import evaluate
+from promptgs_engine.train import Trainer, run_training
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory) -> Path:
+    cfg = ToySceneConfig(width=128, height=96, focal=110.0, n_views=16, ground_grid=60, n_sfm_points=1500)
+    return make_toy_scene(tmp_path_factory.mktemp("toy") / "scene", cfg)
+
+
+def test_training_raises_test_psnr_on_tumbler(shared_data, tmp_path):
+    scene = load_colmap_scene(shared_data / "tumbler", images="images_4")
+    cfg = TrainConfig(dataset=str(shared_data / "tumbler"), out=str(tmp_path / "run"), images="images_4", iterations=200, checkpoint_every=0)
+    trainer = Trainer(cfg, scene=scene, quiet=True)
+    before = evaluate(trainer.params, scene.test_cameras[:4], quiet=True)["psnr"]
+    trainer.out.mkdir()
+    trainer.train()
+    after = evaluate(trainer.params, scene.test_cameras[:4], quiet=True)["psnr"]
+    assert after > before + 3.0, (before, after)
+    assert trainer.n_gaussians > scene.points.shape[0]  # densification happened
+
+
+def test_cli_train_eval_render_and_resume(toy, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", str(toy), "--out", str(out), "--iterations", "30", "--quiet"]) == 0
+    for name in ("cfg.json", "ckpt.pt", "point_cloud.ply", "metrics.json", "train.log"):
+        assert (out / name).is_file(), name
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("psnr", "ssim", "n_gaussians", "train_seconds", "iterations", "backend", "masked_psnr", "object_region_psnr"):
+        assert key in metrics, key
+    assert metrics["iterations"] == 30 and metrics["backend"] == "cpu"
+    # The toy scene has object masks: every test view has a drone in it.
+    assert metrics["n_masked_views"] == metrics["n_test_views"] > 0
+
+    # A finished run is never overwritten by accident...
+    capsys.readouterr()
+    assert main(["train", str(toy), "--out", str(out), "--iterations", "30", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("promptgs: error:") and "already holds a finished run" in err and "\n" not in err
+    # ...but can be extended from its checkpoint.
+    assert main(["train", str(toy), "--out", str(out), "--iterations", "40", "--resume", "--quiet"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["iterations"] == 40
+
+    assert main(["eval", str(out), "--masks", str(toy / "object_masks"), "--quiet"]) == 0
+    assert main(["render", str(out), "--camera", "view_003.png", "--out", str(tmp_path / "png"), "--quiet"]) == 0
+    assert (tmp_path / "png" / "view_003.png").is_file()
+    assert main(["render", str(out), "--camera", "nope.png", "--out", str(tmp_path / "png")]) == 2
+
+
+def test_resume_continues_the_same_run(toy, tmp_path):
+    a = TrainConfig(dataset=str(toy), out=str(tmp_path / "a"), iterations=24, checkpoint_every=12, seed=3)
+    run_training(a, quiet=True)
+    full = torch.load(tmp_path / "a" / "ckpt.pt", weights_only=False)
+
+    b = TrainConfig(dataset=str(toy), out=str(tmp_path / "b"), iterations=12, checkpoint_every=12, seed=3)
+    run_training(b, quiet=True)
+    b.iterations = 24
+    run_training(b, resume=True, quiet=True)
+    resumed = torch.load(tmp_path / "b" / "ckpt.pt", weights_only=False)
+    assert resumed["step"] == full["step"] == 24
+    # Same camera order and optimizer state: the resumed run is the same as the straight one.
+    assert resumed["params"]["means"].shape == full["params"]["means"].shape
+    assert torch.allclose(resumed["params"]["means"], full["params"]["means"], atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "make_bad, expected",
+    [
+        (lambda d: d / "missing", "missing"),
+        (lambda d: d, "sparse"),  # an empty folder: no model
+    ],
+)
+def test_bad_dataset_is_one_line_error_and_writes_nothing(tmp_path, capsys, make_bad, expected):
+    bad = make_bad(tmp_path / "data")
+    if bad.name == "data":
+        bad.mkdir()
+    out = tmp_path / "out"
+    assert main(["train", str(bad), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("promptgs: error:") and "\n" not in err and expected in err
+    assert not out.exists()
+
+
+def test_nan_is_reported_with_step_and_parameter_and_keeps_the_checkpoint(toy, tmp_path):
+    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=40, checkpoint_every=10)
+    trainer = Trainer(cfg, quiet=True)
+    trainer.out.mkdir()
+    real_step = trainer.train_step
+
+    def poisoned_step():
+        result = real_step()
+        if trainer.step == 14:
+            with torch.no_grad():
+                trainer.params["opacities"][0] = float("nan")
+            trainer.check_finite()
+        return result
+
+    trainer.train_step = poisoned_step
+    with pytest.raises(TrainingError, match=r"step 14: NaN/inf in parameter 'opacities'"):
+        trainer.train()
+    ckpt = torch.load(trainer.out / "ckpt.pt", weights_only=False)
+    assert ckpt["step"] == 10
+    assert torch.isfinite(ckpt["params"]["opacities"]).all()
+
+
+def test_events_stream_is_json_lines_from_start_to_done(toy, tmp_path):
+    job = {"dataset": str(toy), "out": str(tmp_path / "run"), "iterations": 20, "snapshot_every": 10, "strategy": "3dgs"}
+    (tmp_path / "job.json").write_text(json.dumps(job))
+    proc = subprocess.run(
+        [sys.executable, "-m", "promptgs_engine", "train", "--job", str(tmp_path / "job.json"), "--events"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    events = [json.loads(line) for line in proc.stdout.splitlines()]
+    kinds = [e["event"] for e in events]
+    assert kinds[0] == "start" and kinds[-1] == "done"
+    assert kinds.count("snapshot") == 2 and "progress" in kinds
+    snap = np.load(next(e["path"] for e in events if e["event"] == "snapshot"))
+    n = snap["means"].shape[0]
+    for key, shape in {"opacity": (n,), "scale": (n, 3), "rotation": (n, 4), "color": (n, 3), "score": (n,), "error": (n,)}.items():
+        assert snap[key].shape == shape, key
+    assert np.allclose(np.linalg.norm(snap["rotation"], axis=1), 1.0, atol=1e-5)
+    done = events[-1]
+    assert Path(done["ply"]).is_file() and math.isfinite(done["metrics"]["psnr"])
+
+
+def test_events_report_errors_as_an_event_and_exit_code(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "promptgs_engine", "train", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o"), "--events"],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "nowhere" in proc.stderr
