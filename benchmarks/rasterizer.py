@@ -224,8 +224,8 @@ class Step:
         galpha = torch.zeros(self.height, self.width, 1)
 
         def bwd():
-            _C.rasterize_backward(m2c, cnc, colc, opc, rc, bg, self.width, self.height, fwd_out[3], fwd_out[4],
-                                  fwd_out[5], fwd_out[1], fwd_out[2], gimg, galpha, False)
+            _C.rasterize_backward(m2c, cnc, colc, opc, rc, bg, self.width, self.height, *fwd_out[3:7],
+                                  fwd_out[1], fwd_out[2], gimg, galpha, False)
 
         return {
             "projection_sh_cpp_forward_backward": timed(proj_sh_cpp_fb, repeats, warmup),

@@ -2,7 +2,8 @@
 //
 // Both passes take one image; the Python side (promptgs_engine/render/cpu.py) loops over
 // cameras. The forward returns the tile lists it built (tile_offsets, tile_ids of depth
-// ranks, tile_order = Gaussian index of each rank) so the backward reuses them.
+// ranks, tile_order = Gaussian index of each rank, tile_contrib = which entries composited
+// anything) so the backward reuses them.
 #include <torch/extension.h>
 
 #include <omp.h>
@@ -74,16 +75,20 @@ std::vector<Tensor> forward(Tensor means2d, Tensor conics, Tensor colors, Tensor
     {
         pybind11::gil_scoped_release no_gil;
         bins = promptgs::bin_gaussians(in, depths.data_ptr<float>());
+    }
+    Tensor contrib = torch::empty({static_cast<int64_t>(bins.ids.size())}, torch::TensorOptions().dtype(torch::kUInt8));
+    {
+        pybind11::gil_scoped_release no_gil;
         promptgs::rasterize_forward(in, bins, out_colors.data_ptr<float>(), out_alphas.data_ptr<float>(),
-                                    last_ids.data_ptr<int32_t>());
+                                    last_ids.data_ptr<int32_t>(), contrib.data_ptr<uint8_t>());
     }
     return {out_colors, out_alphas, last_ids, vector_to_tensor(bins.offsets), vector_to_tensor(bins.ids),
-            vector_to_tensor(bins.order)};
+            vector_to_tensor(bins.order), contrib};
 }
 
 std::vector<Tensor> backward(Tensor means2d, Tensor conics, Tensor colors, Tensor opacities, Tensor radii,
                              Tensor background, int64_t width, int64_t height, Tensor tile_offsets, Tensor tile_ids,
-                             Tensor tile_order, Tensor out_alphas, Tensor last_ids, Tensor grad_colors, Tensor grad_alphas,
+                             Tensor tile_order, Tensor tile_contrib, Tensor out_alphas, Tensor last_ids, Tensor grad_colors, Tensor grad_alphas,
                              bool absgrad) {
     promptgs::RasterInputs in = make_inputs(means2d, conics, colors, opacities, radii, background, width, height);
     const int64_t N = in.n, D = in.d;
@@ -102,6 +107,7 @@ std::vector<Tensor> backward(Tensor means2d, Tensor conics, Tensor colors, Tenso
     bins.ids.assign(tile_ids.data_ptr<int32_t>(), tile_ids.data_ptr<int32_t>() + tile_ids.numel());
     bins.order.assign(tile_order.data_ptr<int32_t>(), tile_order.data_ptr<int32_t>() + tile_order.numel());
     TORCH_CHECK(bins.offsets.back() == static_cast<int32_t>(bins.ids.size()), "tile_offsets do not match tile_ids");
+    check(tile_contrib, "tile_contrib", torch::kUInt8, {static_cast<int64_t>(bins.ids.size())});
 
     auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
     Tensor g_means2d = torch::empty({N, 2}, f32);
@@ -112,7 +118,7 @@ std::vector<Tensor> backward(Tensor means2d, Tensor conics, Tensor colors, Tenso
     {
         pybind11::gil_scoped_release no_gil;
         promptgs::rasterize_backward(in, bins, out_alphas.data_ptr<float>(), last_ids.data_ptr<int32_t>(),
-                                     grad_colors.data_ptr<float>(), grad_alphas.data_ptr<float>(),
+                                     tile_contrib.data_ptr<uint8_t>(), grad_colors.data_ptr<float>(), grad_alphas.data_ptr<float>(),
                                      g_means2d.data_ptr<float>(), g_conics.data_ptr<float>(),
                                      g_colors.data_ptr<float>(), g_opac.data_ptr<float>(),
                                      absgrad ? g_abs.data_ptr<float>() : nullptr);
@@ -230,7 +236,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "PromptGS CPU rasterizer: tile-based 3D Gaussian splatting forward and backward (OpenMP)";
     m.def("rasterize_forward", &forward,
           "Composite one image: (means2d, conics, colors, opacities, depths, radii, background, width, height) -> "
-          "[colors HxWxD, alphas HxWx1, last_ids HxW, tile_offsets, tile_ids, tile_order].");
+          "[colors HxWxD, alphas HxWx1, last_ids HxW, tile_offsets, tile_ids, tile_order, tile_contrib].");
     m.def("rasterize_backward", &backward,
           "Gradients of one image -> [means2d Nx2, conics Nx3, colors NxD, opacities N, absgrad Nx2 or empty].");
     m.def("project_forward", &project_fwd,

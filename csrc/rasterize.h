@@ -71,9 +71,11 @@ struct TileArgs {
     float* out_colors = nullptr;  // [H, W, D]
     float* out_alphas = nullptr;  // [H, W]
     int32_t* out_last = nullptr;  // [H, W]
+    uint8_t* out_contrib = nullptr;  // [n_isects] 1 where the Gaussian composited a pixel of the tile
     // backward inputs
     const float* alphas = nullptr;       // [H, W] forward alphas
     const int32_t* last_ids = nullptr;   // [H, W] forward last contributors
+    const uint8_t* contrib = nullptr;    // [n_isects] forward out_contrib
     const float* grad_colors = nullptr;  // [H, W, D]
     const float* grad_alphas = nullptr;  // [H, W]
 };
@@ -120,15 +122,18 @@ struct RasterInputs {
 TileBins bin_gaussians(const RasterInputs& in, const float* depths);
 
 // Composites one image. Outputs: colours [H, W, D], alphas [H, W], last_ids [H, W] (index
-// into bins.ids of the last Gaussian composited at each pixel, -1 if none).
+// into bins.ids of the last Gaussian composited at each pixel, -1 if none), contrib
+// [n_isects] (1 where a tile-list entry composited at least one pixel; the backward skips
+// the others).
 void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_colors,
-                       float* out_alphas, int32_t* last_ids);
+                       float* out_alphas, int32_t* last_ids, uint8_t* contrib);
 
 // Gradients for one image, given the forward outputs and dL/d(colours [H,W,D], alphas [H,W]).
 // Outputs (overwritten): means2d [N,2], conics [N,3], colors [N,D], opacities [N] and,
 // when grad_abs_means2d is not null, the per-pixel sums of |dL/dmeans2d| [N,2].
 void rasterize_backward(const RasterInputs& in, const TileBins& bins, const float* out_alphas,
-                        const int32_t* last_ids, const float* grad_colors, const float* grad_alphas,
+                        const int32_t* last_ids, const uint8_t* contrib, const float* grad_colors,
+                        const float* grad_alphas,
                         float* grad_means2d, float* grad_conics, float* grad_colors_out,
                         float* grad_opacities, float* grad_abs_means2d);
 

@@ -15,7 +15,8 @@
 namespace promptgs {
 
 void rasterize_backward(const RasterInputs& in, const TileBins& bins, const float* out_alphas,
-                        const int32_t* last_ids, const float* grad_colors, const float* grad_alphas,
+                        const int32_t* last_ids, const uint8_t* contrib, const float* grad_colors,
+                        const float* grad_alphas,
                         float* grad_means2d, float* grad_conics, float* grad_colors_out, float* grad_opacities,
                         float* grad_abs_means2d) {
     const int64_t N = in.n, D = in.d;
@@ -35,6 +36,7 @@ void rasterize_backward(const RasterInputs& in, const TileBins& bins, const floa
     args.background = in.background;
     args.alphas = out_alphas;
     args.last_ids = last_ids;
+    args.contrib = contrib;
     args.grad_colors = grad_colors;
     args.grad_alphas = grad_alphas;
     const TileKernels::Backward backward = tile_kernels().backward[kernel_for(D)];

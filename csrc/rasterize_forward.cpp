@@ -193,7 +193,7 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
 }
 
 void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_colors, float* out_alphas,
-                       int32_t* last_ids) {
+                       int32_t* last_ids, uint8_t* contrib) {
     std::vector<Splat> splats;
     std::vector<float> colors;
     gather_sorted(in, bins, splats, colors);
@@ -207,6 +207,7 @@ void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_
     args.out_colors = out_colors;
     args.out_alphas = out_alphas;
     args.out_last = last_ids;
+    args.out_contrib = contrib;
     const TileKernels::Forward forward = tile_kernels().forward[kernel_for(in.d)];
 #pragma omp parallel
     {

@@ -71,9 +71,10 @@ class RasterizeCPU(torch.autograd.Function):
         g_m, g_cn, g_col, g_op, g_abs, g_bg = [], [], [], [], [], []
         for c, (args, alpha, bins) in enumerate(ctx.saved_per_camera):
             m2, cn, col, opac, radii, bg = args
-            last_ids, tile_offsets, tile_ids, tile_order = bins
+            last_ids, tile_offsets, tile_ids, tile_order, tile_contrib = bins
             gm, gcn, gcol, gop, gab = _C.rasterize_backward(
-                m2, cn, col, opac, radii, bg, ctx.width, ctx.height, tile_offsets, tile_ids, tile_order, alpha, last_ids,
+                m2, cn, col, opac, radii, bg, ctx.width, ctx.height, tile_offsets, tile_ids, tile_order, tile_contrib,
+                alpha, last_ids,
                 _f32(grad_colors[c]), _f32(grad_alphas[c]), ctx.absgrad,
             )
             g_m.append(gm)
