@@ -271,7 +271,8 @@ def plot(results: dict, path: Path) -> None:
     width = 0.25
     for j, kind in enumerate(kinds):
         vals = [results["configs"][k][kind]["median_s"] * 1000 for k in keys]
-        bars = ax.bar([i + (j - 1) * width for i in range(len(keys))], vals, width, label=kind.replace("_", " + "))
+        label = {"forward": "forward", "forward_backward": "forward + backward", "train_step": "training step"}[kind]
+        bars = ax.bar([i + (j - 1) * width for i in range(len(keys))], vals, width, label=label)
         ax.bar_label(bars, fmt="%.0f", fontsize=7)
     for i, k in enumerate(keys):
         size = results["configs"][k]["size"]
@@ -279,7 +280,8 @@ def plot(results: dict, path: Path) -> None:
             ax.hlines(TARGETS_S[size] * 1000, i - 1.5 * width, i + 1.5 * width, colors="k", linestyles="--")
     ax.set_xticks(range(len(keys)), [f"{results['configs'][k]['size']}\n{results['configs'][k]['n_gaussians']} Gaussians" for k in keys])
     ax.set_ylabel("median time (ms)")
-    ax.set_title(f"PromptGS CPU rasterizer ({results['machine']['threads']} threads, {results['machine']['simd']}); dashed: step target")
+    m = results["machine"]
+    ax.set_title(f"PromptGS CPU backend ({m['threads']} threads, {m['simd']}, load {m['load_average_start']:.1f}); dashed: step target", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
