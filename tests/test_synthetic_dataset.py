@@ -28,8 +28,10 @@ def _bpy_importable() -> bool:
         return False
 
 
-if not _bpy_importable():
-    pytest.skip("bpy cannot be imported in a subprocess", allow_module_level=True)
+@pytest.fixture(scope="module", autouse=True)
+def _needs_bpy() -> None:
+    if not _bpy_importable():
+        pytest.skip("bpy cannot be imported in a subprocess")
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:

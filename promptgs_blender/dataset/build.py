@@ -215,7 +215,7 @@ def build_scene(terrain: Terrain, layout: dict[str, Any], params: dict[str, Any]
     scorch = [(f["centre"][0], f["centre"][1]) for f in layout["flames"]]
     colours = terrain_colors(
         np.random.default_rng(layout["terrain"]["colour_seed"]), terrain, float(params["snow_line"]),
-        scorch, 2.2 * float(params["flame_height"]),
+        scorch, 1.5 * float(params["flame_height"]),
     )
     terrain_obj = _grid_object("terrain", terrain, coll)
     _add_colour_attribute(terrain_obj, "terrain_colour", np.concatenate([colours, np.ones((len(colours), 1))], axis=1))
@@ -224,7 +224,7 @@ def build_scene(terrain: Terrain, layout: dict[str, Any], params: dict[str, Any]
 
     # Flames, each with a warm point light for the glow on the ground
     built_flames = []
-    flame_mat = _flame_material(strength=3.0)
+    flame_mat = _flame_material(strength=1.8)
     for f in layout["flames"]:
         verts, faces, rgba = geometry.flame_mesh(f["mesh_seed"], f["height"], f["radius"], f["n_tongues"])
         obj = _mesh_object(f"flame_{f['id']}", verts, faces, coll)

@@ -61,7 +61,7 @@ def drone_parts() -> dict[str, Mesh]:
     return {"frame": merge(frame), "rotors": merge(rotors)}
 
 
-FLAME_COLOURS = np.array([[1.0, 0.72, 0.18], [1.0, 0.36, 0.03], [0.85, 0.13, 0.01], [0.4, 0.03, 0.005]])
+FLAME_COLOURS = np.array([[1.0, 0.6, 0.1], [1.0, 0.28, 0.02], [0.8, 0.09, 0.005], [0.35, 0.02, 0.002]])
 
 
 def _flame_colour(t: np.ndarray, warmth: float) -> np.ndarray:

@@ -16,7 +16,7 @@ from PIL import Image, ImageDraw
 
 CROP = 8  # crop half-size in image pixels
 ZOOM = 10  # nearest-neighbour enlargement of the crops
-MAX_CROPS = 8  # per view
+MAX_CROPS = 6  # per view
 
 
 def contact_sheet(root: Path, n_views: int = 4, scale: int = 2) -> Image.Image:
@@ -73,7 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scale", type=int, default=2)
     args = parser.parse_args(argv)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    contact_sheet(args.dataset, args.views, args.scale).save(args.out)
+    sheet = contact_sheet(args.dataset, args.views, args.scale)
+    # 256 colours keep the PNG small enough for the repository; the drones' colours survive
+    sheet.quantize(colors=256, method=Image.Quantize.FASTOCTREE).save(args.out, optimize=True)
     print(args.out)
     return 0
 
