@@ -187,3 +187,31 @@ def test_existing_datasets_are_never_overwritten(tiny: Path, tmp_path: Path) -> 
     result = _cli("--preset", "tiny", "--out", str(foreign), "--quiet")
     assert result.returncode == 2 and "not empty" in result.stderr
     assert [p.name for p in foreign.iterdir()] == ["notes.txt"]
+
+
+def test_blender_binary_route(tmp_path: Path) -> None:
+    """``--blender PATH`` runs ``PATH -b --factory-startup --python-exit-code 1 --python-expr CODE -- ARGS``;
+    a stand-in binary that runs CODE with this Python checks the plumbing (layout only)."""
+    fake = tmp_path / "blender"
+    fake.write_text(
+        "#!/bin/sh\n"
+        '[ "$1" = -b ] && [ "$2" = --factory-startup ] && [ "$5" = --python-expr ] || exit 9\n'
+        'code="$6"; shift 6\n'
+        f'exec {sys.executable} -c "$code" "$@"\n'
+    )
+    fake.chmod(0o755)
+    result = _cli("--preset", "tiny", "--dry-run", "--blender", str(fake))
+    assert result.returncode == 0, result.stderr
+    assert len(json.loads(result.stdout)["cameras"]) == 12
+
+
+def test_blender_crash_keeps_log_and_leaves_out_alone(tmp_path: Path) -> None:
+    fake = tmp_path / "blender"
+    fake.write_text("#!/bin/sh\necho 'Segmentation fault'\nexit 3\n")
+    fake.chmod(0o755)
+    out = tmp_path / "ds"
+    result = _cli("--preset", "tiny", "--out", str(out), "--blender", str(fake), "--quiet")
+    assert result.returncode == 2 and "Blender exited with status 3" in result.stderr
+    assert not out.exists()
+    log = tmp_path / ".ds.partial" / ".work" / "blender.log"
+    assert "Segmentation fault" in log.read_text()

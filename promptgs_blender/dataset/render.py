@@ -31,6 +31,7 @@ def _render_to(scene: Any, path: Path) -> None:
 def render_images(built: BuiltScene, cameras: list[dict[str, Any]], folder: Path, progress: Progress, stage: str) -> None:
     """Cycles render of every camera into ``folder/<name>``."""
     folder.mkdir(parents=True, exist_ok=True)
+    progress(stage, 0, len(cameras))
     for i, cam in enumerate(cameras):
         built.camera.matrix_world = camera_matrix_world(cam["world_to_camera"])
         _render_to(built.scene, folder / cam["name"])

@@ -37,6 +37,10 @@ if code:
 Progress = Callable[[str, int, int], None]
 
 
+class BlenderFailed(DatasetError):
+    """Blender stopped with an error other than a parameter problem; its log is kept."""
+
+
 def bpy_available() -> bool:
     """Whether this Python can import ``bpy`` (checked without importing it)."""
     return importlib.util.find_spec("bpy") is not None
@@ -92,4 +96,4 @@ def run_generator(
     if error is not None:
         raise DatasetError(error)
     if code != 0:
-        raise DatasetError(f"Blender exited with status {code}; see {log_path}")
+        raise BlenderFailed(f"Blender exited with status {code}; see {log_path}")

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import DatasetError
 from . import scene_record
-from .blender import run_generator
+from .blender import BlenderFailed, run_generator
 
 FORMAT = "promptgs-synthetic-mountain/1"
 
@@ -113,28 +113,29 @@ def generate(params: dict[str, Any], out: Path, blender: str | None, show_progre
 
     n_views = sum(int(r["count"]) for r in params["camera_rings"])
     n_test = sum(1 for i in range(n_views) if int(params["test_every"]) > 0 and i % int(params["test_every"]) == 0)
-    bar = None
-    if show_progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=2 * n_views + n_test, unit="render", desc="rendering", dynamic_ncols=True)
+    bars: list = []  # the progress bar, opened at the first render so parameter errors print alone
     last: dict[str, int] = {}
 
     def progress(stage: str, done: int, total: int) -> None:
-        if bar is not None:
-            bar.set_postfix_str(f"{stage} {done}/{total}")
-            bar.update(done - last.get(stage, 0))
+        if show_progress and not bars:
+            from tqdm import tqdm
+
+            bars.append(tqdm(total=2 * n_views + n_test, unit="render", desc="rendering", dynamic_ncols=True))
+        if bars:
+            bars[0].set_postfix_str(f"{stage} {done}/{total}")
+            bars[0].update(done - last.get(stage, 0))
         last[stage] = done
 
     try:
         try:
             run_generator(["--params", str(work / "params.json"), "--out", str(partial)], blender, work / "blender.log", progress)
         finally:
-            if bar is not None:
+            for bar in bars:
                 bar.close()
-    except DatasetError as exc:
-        if "see " not in str(exc):  # a parameter problem: nothing worth keeping
-            shutil.rmtree(partial, ignore_errors=True)
+    except BlenderFailed:
+        raise  # keep the partial folder with .work/blender.log
+    except DatasetError:
+        shutil.rmtree(partial, ignore_errors=True)  # a parameter problem: nothing worth keeping
         raise
     gen = json.loads((partial / "layout.json").read_text())
     layout = gen["layout"]
