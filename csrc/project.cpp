@@ -33,7 +33,7 @@ inline void quat_to_rot(const float q[4], float R[9]) {
 }
 
 // C = A B for 3x3 row-major matrices; At/Bt use the transpose of A/B.
-inline void mul33(const float* A, const float* B, float* C, bool At = false, bool Bt = false) {
+__attribute__((always_inline)) inline void mul33(const float* A, const float* B, float* C, bool At = false, bool Bt = false) {
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j) {
             float s = 0.f;
@@ -55,7 +55,7 @@ struct Proj {
 };
 
 // Projects Gaussian i; returns false when it is culled before the 2D covariance exists.
-inline bool project_one(const ProjectInputs& in, const Camera& cam, int64_t i, Proj& p) {
+__attribute__((always_inline)) inline bool project_one(const ProjectInputs& in, const Camera& cam, int64_t i, Proj& p) {
     const float* m = in.means + 3 * i;
     for (int r = 0; r < 3; ++r) p.pc[r] = cam.R[3 * r] * m[0] + cam.R[3 * r + 1] * m[1] + cam.R[3 * r + 2] * m[2] + cam.t[r];
     const float z = p.pc[2];
@@ -248,11 +248,17 @@ void project_backward(const ProjectInputs& in, const Camera& cam, const int32_t*
         vm[0] = vm[1] = vm[2] = 0.f;
         vq[0] = vq[1] = vq[2] = vq[3] = 0.f;
         vs[0] = vs[1] = vs[2] = 0.f;
+        // SH gradients are written once: zeros for culled Gaussians and unused coefficients
+        const int sh_from = (radii[2 * i] > 0 && radii[2 * i + 1] > 0 && v_colors) ? n_bases : 0;
         if (v_sh)
-            for (int k = 0; k < in.sh_k * 3; ++k) v_sh[i * in.sh_k * 3 + k] = 0.f;
+            for (int k = sh_from * 3; k < in.sh_k * 3; ++k) v_sh[i * in.sh_k * 3 + k] = 0.f;
         if (radii[2 * i] <= 0 || radii[2 * i + 1] <= 0) continue;
         Proj p;
-        if (!project_one(in, cam, i, p)) continue;
+        if (!project_one(in, cam, i, p)) {  // cannot happen for a visible Gaussian; keep outputs defined
+            if (v_sh)
+                for (int k = 0; k < sh_from * 3; ++k) v_sh[i * in.sh_k * 3 + k] = 0.f;
+            continue;
+        }
 
         const float x = p.pc[0], y = p.pc[1], z = p.pc[2];
         const float iz = 1.f / z, iz2 = iz * iz, iz3 = iz2 * iz;
