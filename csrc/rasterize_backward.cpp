@@ -3,8 +3,9 @@
 // Each tile replays its Gaussians back to front, starting from the final transmittance
 // saved by the forward pass and the per-pixel index of the last contributor, recovering
 // T before each Gaussian as T / (1 - alpha). Gradients are summed per Gaussian within a
-// tile (vector accumulators, see tile_kernels.inc), then added to a per-thread buffer; the buffers are
-// reduced at the end, so no atomics are needed.
+// tile (vector accumulators, see tile_kernels.inc), then added to a per-thread buffer
+// indexed by depth rank; the buffers are reduced (and mapped back to Gaussian order) at
+// the end, so no atomics are needed.
 #include <omp.h>
 
 #include <algorithm>

@@ -1,7 +1,6 @@
-// Forward pass of the CPU rasterizer: tile binning, depth sort, front-to-back compositing.
-//
-// Inside a tile the loops run Gaussian by Gaussian (front to back) and, for each one, over
-// the tile rows its box touches, with the 16 pixels of a row as one vector.
+// Forward pass of the CPU rasterizer: depth sort, tile binning (exact ellipse/tile test),
+// depth-ranked copies of the Gaussian data, then the per-tile compositing kernels of
+// tile_kernels.inc in parallel over tiles.
 #include <omp.h>
 
 #include <algorithm>
