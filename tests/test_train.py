@@ -64,20 +64,37 @@ def test_cli_train_eval_render_and_resume(toy, tmp_path, capsys):
     assert main(["render", str(out), "--camera", "nope.png", "--out", str(tmp_path / "png")]) == 2
 
 
-def test_resume_continues_the_same_run(toy, tmp_path):
-    a = TrainConfig(dataset=str(toy), out=str(tmp_path / "a"), iterations=24, checkpoint_every=12, seed=3)
+def test_an_interrupted_run_resumes_to_the_same_result(toy, tmp_path, monkeypatch):
+    a = TrainConfig(dataset=str(toy), out=str(tmp_path / "a"), iterations=40, checkpoint_every=20, seed=3)
     run_training(a, quiet=True)
-    full = torch.load(tmp_path / "a" / "ckpt.pt", weights_only=False)
+    straight = torch.load(tmp_path / "a" / "ckpt.pt", weights_only=False)
 
-    b = TrainConfig(dataset=str(toy), out=str(tmp_path / "b"), iterations=12, checkpoint_every=12, seed=3)
-    run_training(b, quiet=True)
-    b.iterations = 24
+    b = TrainConfig(dataset=str(toy), out=str(tmp_path / "b"), iterations=40, checkpoint_every=20, seed=3)
+    real_step = Trainer.train_step
+
+    def interrupted(self):
+        if self.step == 25:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_training(b, quiet=True)
+    assert torch.load(tmp_path / "b" / "ckpt.pt", weights_only=False)["step"] == 20
+    assert not (tmp_path / "b" / "point_cloud.ply").exists()
+    monkeypatch.setattr(Trainer, "train_step", real_step)
     run_training(b, resume=True, quiet=True)
     resumed = torch.load(tmp_path / "b" / "ckpt.pt", weights_only=False)
-    assert resumed["step"] == full["step"] == 24
-    # Same camera order and optimizer state: the resumed run is the same as the straight one.
-    assert resumed["params"]["means"].shape == full["params"]["means"].shape
-    assert torch.allclose(resumed["params"]["means"], full["params"]["means"], atol=1e-4)
+    assert resumed["step"] == straight["step"] == 40
+    assert "resumed at step 20" in (tmp_path / "b" / "train.log").read_text()
+    # Same camera order, optimizer and strategy state. The threaded backward sums
+    # gradients in a scheduling-dependent order, so runs agree closely, not bit for bit.
+    n_a, n_b = straight["params"]["means"].shape[0], resumed["params"]["means"].shape[0]
+    assert abs(n_a - n_b) <= 0.01 * n_a
+    assert resumed["order"] == straight["order"]
+    psnr_a = json.loads((tmp_path / "a" / "metrics.json").read_text())["psnr"]
+    psnr_b = json.loads((tmp_path / "b" / "metrics.json").read_text())["psnr"]
+    assert abs(psnr_a - psnr_b) < 0.3
 
 
 @pytest.mark.parametrize(
