@@ -119,6 +119,26 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_demo(sub) -> None:
+    p = sub.add_parser("demo", help="3DGS vs AbsGS vs PromptGS on the embedded tiny-objects scene")
+    p.add_argument("--out", type=Path, default=Path("runs/demo"))
+    p.add_argument("--iterations", type=int, default=1000)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0])
+    p.add_argument("--scene", type=Path, help="a dataset with prompts_1.json / prompts_2.json and object_masks/ (default: the toy scene)")
+    p.set_defaults(func=cmd_demo)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .bench.tiny_objects import ensure_toy_scene, run_comparison, table
+
+    scene = args.scene or ensure_toy_scene(args.out / "toy_scene")
+    print(f"scene: {scene}")
+    summary = run_comparison(scene, args.out, args.iterations, args.seeds, quiet=False)
+    print(table(summary))
+    print(f"results: {args.out / 'results.json'}, chart: {args.out / 'comparison.png'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="promptgs", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"promptgs {__version__}")
@@ -126,6 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train(sub)
     _add_eval(sub)
     _add_render(sub)
+    _add_demo(sub)
     from .synthetic.cli import add_parser as add_dataset
 
     add_dataset(sub)
