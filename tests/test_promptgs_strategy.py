@@ -1,10 +1,10 @@
-import dataclasses
 import math
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from promptgs_engine.bench.toy_scene import look_at
 from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import Camera
 from promptgs_engine.focus import crop_camera
@@ -119,16 +119,8 @@ def test_append_gaussians_extends_parameters_optimizer_state_and_strategy_state(
 
 
 def _camera(center, target, size=64, f=60.0):
-    forward = np.asarray(target, float) - center
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0, 0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    R = np.stack([right, down, forward])
-    m = np.eye(4)
-    m[:3, :3] = R
-    m[:3, 3] = -R @ center
     K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]], dtype=torch.float32)
+    m = look_at(np.asarray(center, float), np.asarray(target, float))
     return Camera("c", size, size, K, torch.tensor(m, dtype=torch.float32), Path("none"))
 
 
