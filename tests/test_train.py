@@ -10,19 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from promptgs_engine.bench.toy_scene import ToySceneConfig, make_toy_scene
 from promptgs_engine.cli import main
 from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.errors import TrainingError
 from promptgs_engine.evaluation import evaluate
 from promptgs_engine.train import Trainer, run_training
-
-
-@pytest.fixture(scope="module")
-def toy(tmp_path_factory) -> Path:
-    cfg = ToySceneConfig(width=128, height=96, focal=110.0, n_views=16, ground_grid=60, n_sfm_points=1500)
-    return make_toy_scene(tmp_path_factory.mktemp("toy") / "scene", cfg)
 
 
 def test_training_raises_test_psnr_on_tumbler(shared_data, tmp_path):
