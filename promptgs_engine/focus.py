@@ -32,7 +32,7 @@ import torch
 from .data import Camera
 from .errorfield import ErrorField
 from .errors import PromptError
-from .losses import edge_loss, ssim_map
+from .losses import edge_loss
 from .prompts import PromptBox, center_prompt, check_visible, load_prompts, project_box, prompts_from_json
 from .strategies.promptgs import LAMBDA_DSSIM, LAMBDA_EDGE, LAMBDA_L1, append_gaussians, carve_prompt
 from .views import RELATED_MULTIVIEW, ViewSchedule, related_views, views_cap_from_memory
@@ -82,7 +82,9 @@ def available_memory_bytes() -> int:
 
 
 class PromptFocus:
-    def __init__(self, trainer, prompts: list[PromptBox], max_views: int = 3, related_k: int = 8):
+    def __init__(
+        self, trainer, prompts: list[PromptBox], max_views: int = 2, related_k: int = 8, field_every: int = 10
+    ):
         self.trainer = trainer
         cfg = trainer.cfg
         self.cameras = trainer.scene.train_cameras
@@ -91,6 +93,7 @@ class PromptFocus:
         self.prompts: list[PromptBox] = []
         self.related: list[list[int]] = []
         self.related_k = related_k
+        self.field_every = field_every  # the field moves slowly; back-projecting every step costs ~10% of a step
         self.field = ErrorField.from_extent(trainer.scene.extent, resolution=128)
         self.auto_prompts = int(cfg.auto_prompts or 0)
         self.auto_prompt_step = None
@@ -169,11 +172,21 @@ class PromptFocus:
     # -- after each step --------------------------------------------------------------
 
     @torch.no_grad()
-    def observe(self, step: int, views: list[TrainView], rendered: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, info: dict) -> None:
-        """Per-view losses and per-pixel errors for the strategy; feed the error field."""
+    def observe(
+        self,
+        step: int,
+        views: list[TrainView],
+        rendered: torch.Tensor,
+        l1_map: torch.Tensor,
+        dssim_map: torch.Tensor,
+        depth: torch.Tensor,
+        alpha: torch.Tensor,
+        info: dict,
+    ) -> None:
+        """Per-view losses and per-pixel errors for the strategy; every ``field_every``
+        steps, feed the error field. ``l1_map`` and ``dssim_map`` are [C, H, W] (the maps
+        the training loss was computed from, detached)."""
         gts = torch.stack([v.gt for v in views])
-        l1_map = (rendered - gts).abs().mean(dim=-1)  # [C, H, W]
-        dssim_map = (1.0 - ssim_map(rendered, gts)).mean(dim=-1)
         view_loss = torch.stack(
             [
                 LAMBDA_L1 * l1_map[i].mean() + LAMBDA_DSSIM * dssim_map[i].mean() + LAMBDA_EDGE * edge_loss(rendered[i : i + 1], gts[i : i + 1])
@@ -182,6 +195,8 @@ class PromptFocus:
         )
         info["view_loss"] = view_loss
         info["error_map"] = l1_map
+        if step % self.field_every:
+            return
         loss_map = 0.8 * l1_map + 0.2 * dssim_map
         for i, v in enumerate(views):
             self.field.accumulate(loss_map[i], depth[i], alpha[i], v.camera, step=step, top_q=0.1)

@@ -76,10 +76,3 @@ def edge_loss(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2) -> torch.Tensor:
     """The 3DGS training loss: (1 − λ)·L1 + λ·D-SSIM."""
     return (1.0 - ssim_lambda) * l1(img, ref) + ssim_lambda * d_ssim(img, ref)
-
-
-def per_pixel_loss(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2) -> torch.Tensor:
-    """The training loss before averaging, per pixel and summed over channels, [B, H, W]."""
-    l1_map = (img - ref).abs().mean(dim=-1)
-    dssim_map = (1.0 - ssim_map(img, ref)).mean(dim=-1)
-    return (1.0 - ssim_lambda) * l1_map + ssim_lambda * dssim_map

@@ -24,7 +24,7 @@ from .data import Camera, Scene, load_colmap_scene
 from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
-from .losses import photometric_loss
+from .losses import ssim_map
 from .metrics import mse_to_psnr
 from .render import render
 from .strategies import DefaultSchedule, make_default_strategy
@@ -208,14 +208,20 @@ class Trainer:
             cameras, sh_degree=self.active_sh_degree(step), absgrad=self.absgrad, render_mode=mode
         )
         img = out[..., :3]
-        loss = photometric_loss(img, gt, self.cfg.ssim_lambda)
+        # (1 − λ)·L1 + λ·D-SSIM from per-pixel maps, which PromptGS reuses for its scores.
+        l1_map = (img - gt).abs().mean(dim=-1)
+        dssim_map = (1.0 - ssim_map(img, gt)).mean(dim=-1)
+        loss = (1.0 - self.cfg.ssim_lambda) * l1_map.mean() + self.cfg.ssim_lambda * dssim_map.mean()
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
         loss.backward()
         loss_value = loss.item()
         if not math.isfinite(loss_value):
             raise TrainingError(f"step {step}: the loss is {loss_value} (camera {cameras[0].name})")
         if self.focus is not None:
-            self.focus.observe(step, views, img.detach(), out[..., 3].detach(), alpha[..., 0].detach(), info)
+            self.focus.observe(
+                step, views, img.detach(), l1_map.detach(), dssim_map.detach(),
+                out[..., 3].detach(), alpha[..., 0].detach(), info,
+            )
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
