@@ -214,9 +214,19 @@ class PromptFocus:
                     continue
             log.info("step %d: %d automatic prompts from the error field", step, len(visible))
             self.set_prompts(self.prompts + visible)
-        in_window = sched.refine_start_iter < step < sched.refine_stop_iter
-        if self.prompts and in_window and step % self.resample_every == 0:
+        if self.prompts and self.is_resample_step(step):
             self.resample(step)
+
+    def is_resample_step(self, step: int) -> bool:
+        """Resampling steps, counted from the last opacity reset: the first one refinement
+        interval after it, then every ``resample_every`` steps. Right after a reset every
+        opacity is clamped low, the render is mostly empty and every pixel looks wrong, so
+        carving then would scatter Gaussians through the whole box."""
+        sched = self.trainer.schedule
+        if not sched.refine_start_iter < step < sched.refine_stop_iter:
+            return False
+        since_reset = step % sched.reset_every
+        return since_reset >= sched.refine_every and (since_reset - sched.refine_every) % self.resample_every == 0
 
     @torch.no_grad()
     def resample(self, step: int) -> int:

@@ -169,3 +169,21 @@ def test_crop_camera_renders_the_crop_of_the_full_image():
     crop = crop_camera(cam, 10, 20, 32, 24)
     part = _render_points(means, cols[:1], crop, torch.zeros(3))
     assert torch.allclose(part, full[20:44, 10:42], atol=1e-5)
+
+
+def test_resampling_never_runs_right_after_an_opacity_reset():
+    """After a reset the render is nearly empty and carving would scatter Gaussians."""
+    from types import SimpleNamespace
+
+    from promptgs_engine.focus import PromptFocus
+    from promptgs_engine.strategies import DefaultSchedule
+
+    for iterations in (600, 1000, 3000, 30_000):
+        sched = DefaultSchedule.for_iterations(iterations)
+        focus = PromptFocus.__new__(PromptFocus)
+        focus.trainer = SimpleNamespace(schedule=sched)
+        focus.resample_every = max(2 * sched.refine_every, 20)
+        steps = [s for s in range(iterations) if focus.is_resample_step(s)]
+        assert len(steps) >= 3, iterations
+        assert all(s % sched.reset_every >= sched.refine_every for s in steps), iterations
+        assert all(sched.refine_start_iter < s < sched.refine_stop_iter for s in steps)
