@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -154,6 +155,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # Cancel (from the Blender add-on, or Ctrl-C) is SIGINT, which stops training cleanly
+    # with the last checkpoint and snapshot kept. A process started by a parent that
+    # ignores SIGINT (a background job of a script, some launchers) inherits the ignore
+    # and Python then installs no handler: restore it so cancel always works.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

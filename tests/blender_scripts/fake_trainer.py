@@ -8,6 +8,7 @@ JSON-lines events. ``FAKE_TRAINER_MODE`` picks the behaviour: ``ok`` (default), 
 
 import json
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -53,6 +54,7 @@ def dataset(argv, mode):
 
 
 def main(argv):
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # as the real CLI does
     mode = os.environ.get("FAKE_TRAINER_MODE", "ok")
     if "dataset" in argv:
         return dataset(argv, mode)
