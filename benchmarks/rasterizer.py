@@ -89,33 +89,21 @@ def canonical_camera(width: int, height: int) -> tuple[torch.Tensor, torch.Tenso
 
 
 def load_ply(path: Path, sh_degree: int) -> dict[str, torch.Tensor]:
-    """Gaussians from a standard 3DGS PLY (x, y, z, f_dc_*, f_rest_*, opacity, scale_*, rot_*)."""
-    import numpy as np
-    from plyfile import PlyData
+    """Gaussians from a standard 3DGS PLY, with their SH cut or zero-padded to ``sh_degree``."""
+    from promptgs_engine.gaussians import load_ply as read_ply
 
-    v = PlyData.read(str(path))["vertex"]
-    names = v.data.dtype.names
-
-    def cols(prefix: str) -> np.ndarray:
-        keys = sorted((k for k in names if k.startswith(prefix)), key=lambda k: int(k.rsplit("_", 1)[1]))
-        return np.stack([np.asarray(v[k], dtype=np.float32) for k in keys], axis=-1)
-
-    n = len(v["x"])
-    dc = cols("f_dc_").reshape(n, 1, 3)
-    rest_flat = cols("f_rest_") if any(k.startswith("f_rest_") for k in names) else np.zeros((n, 0), np.float32)
-    rest = rest_flat.reshape(n, 3, -1).transpose(0, 2, 1)  # stored channel-major
-    K = (sh_degree + 1) ** 2
-    shN = np.zeros((n, K - 1, 3), np.float32)
-    m = min(K - 1, rest.shape[1])
-    shN[:, :m] = rest[:, :m]
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
+    p = {k: v.detach() for k, v in read_ply(path).items()}
+    n = p["means"].shape[0]
+    shN = torch.zeros(n, (sh_degree + 1) ** 2 - 1, 3)
+    m = min(shN.shape[1], p["shN"].shape[1])
+    shN[:, :m] = p["shN"][:, :m]
     return {
-        "means": t(np.stack([v["x"], v["y"], v["z"]], -1).astype(np.float32)),
-        "quats": t(cols("rot_")),
-        "log_scales": t(cols("scale_")),
-        "opacity_logits": t(np.asarray(v["opacity"], np.float32)),
-        "sh0": t(dc),
-        "shN": t(shN),
+        "means": p["means"],
+        "quats": p["quats"],
+        "log_scales": p["scales"],
+        "opacity_logits": p["opacities"],
+        "sh0": p["sh0"],
+        "shN": shN,
     }
 
 

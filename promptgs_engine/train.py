@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -88,7 +88,6 @@ def atomic_torch_save(obj: Any, path: Path) -> None:
 class StepResult:
     loss: float
     psnr: float
-    extras: dict = field(default_factory=dict)
 
 
 class Trainer:
