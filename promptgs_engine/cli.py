@@ -90,6 +90,7 @@ def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="evaluate a run folder on its test views")
     p.add_argument("run", type=Path)
     p.add_argument("--masks", type=Path, help="object masks (white = object), same names as the images")
+    p.add_argument("--save-renders", action="store_true", help="keep the test-view renders in RUN/renders/")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_eval)
 
@@ -97,7 +98,7 @@ def _add_eval(sub) -> None:
 def cmd_eval(args: argparse.Namespace) -> int:
     from .evaluation import evaluate_run
 
-    _print_metrics(evaluate_run(args.run, mask_dir=args.masks, quiet=args.quiet))
+    _print_metrics(evaluate_run(args.run, mask_dir=args.masks, quiet=args.quiet, save_renders=args.save_renders))
     return 0
 
 

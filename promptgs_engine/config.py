@@ -37,6 +37,7 @@ class TrainConfig:
     snapshot_every: int = 0  # write a snapshot .npz every N steps (0: only at the end when events are on)
     checkpoint_every: int = 1000
     progress_every: int = 10
+    save_test_renders: bool = False  # keep the test-view renders of the final evaluation in RUN/renders/
     # PromptGS options (see docs/promptgs.md); unused by the baselines.
     prompts: Any = None  # path of a prompt file, or the prompt object itself
     center_prompt: bool = False

@@ -15,11 +15,14 @@ from .config import TrainConfig
 from .data import Camera, Scene, load_colmap_scene
 from .errors import PromptGSError
 from .gaussians import load_ply, sh_degree_of
-from .metrics import masked_psnr, object_region_psnr, psnr, resize_mask, ssim
+from .data.images import load_image_tensor
+from .metrics import masked_psnr, object_recall, object_region_psnr, psnr, resize_mask, ssim
 from .render import render
 
 SUMMARY = "train.json"
 METRICS = "metrics.json"
+RENDERS = "renders"  # test-view renders, written when evaluate_run is asked to keep them
+NO_OBJECTS = "gt_nodrones"  # object-free ground truth beside object_masks/ (recall)
 
 
 def load_run(run_dir: Path) -> tuple[TrainConfig, torch.nn.ParameterDict]:
@@ -81,8 +84,12 @@ def evaluate(
     mask_dir: Path | None = None,
     backend: str = "auto",
     quiet: bool = False,
+    no_objects_dir: Path | None = None,
+    render_dir: Path | None = None,
 ) -> dict:
-    """PSNR/SSIM on ``cameras``; with ``mask_dir``, object-pixel and object-region PSNR."""
+    """PSNR/SSIM on ``cameras``; with ``mask_dir``, object-pixel and object-region PSNR;
+    with ``no_objects_dir`` as well (object-free ground truth, same names), per-object
+    recall (`metrics.object_recall`). ``render_dir`` keeps each render as a PNG."""
     if not cameras:
         raise PromptGSError("no test views to evaluate (the dataset has no test split)")
     if mask_dir is not None and not Path(mask_dir).is_dir():
@@ -99,6 +106,12 @@ def evaluate(
                 ids = resize_mask(read_mask(mask_path), cam.height, cam.width)
                 row["masked_psnr"] = masked_psnr(img, gt, ids > 0)
                 row["object_region_psnr"] = object_region_psnr(img, gt, ids)
+                free_path = find_mask(Path(no_objects_dir), camera.name) if no_objects_dir is not None else None
+                if free_path is not None:
+                    free = load_image_tensor(free_path, cam.downscale, (cam.width, cam.height))
+                    row["objects"] = {str(k): v for k, v in object_recall(img, gt, free, ids).items()}
+        if render_dir is not None:
+            save_png(img, Path(render_dir) / (Path(camera.name).stem + ".png"))
         per_image.append(row)
     metrics = {
         "psnr": _mean([r["psnr"] for r in per_image]),
@@ -110,21 +123,56 @@ def evaluate(
         metrics["masked_psnr"] = _mean([r.get("masked_psnr") for r in per_image])
         metrics["object_region_psnr"] = _mean([r.get("object_region_psnr") for r in per_image])
         metrics["n_masked_views"] = sum(r.get("masked_psnr") is not None for r in per_image)
+    if any("objects" in r for r in per_image):
+        metrics.update(summarize_recall(per_image))
     metrics["per_image"] = per_image
     return metrics
 
 
+def summarize_recall(per_image: list[dict]) -> dict:
+    """Recall over all (object, view) pairs, and per object (keys are object ids)."""
+    pairs: dict[str, list[bool]] = {}
+    for row in per_image:
+        for obj, ok in row.get("objects", {}).items():
+            pairs.setdefault(obj, []).append(bool(ok))
+    flat = [ok for oks in pairs.values() for ok in oks]
+    return {
+        "recall": float(np.mean(flat)) if flat else None,
+        "n_recall_pairs": len(flat),
+        "recall_per_object": {obj: float(np.mean(oks)) for obj, oks in sorted(pairs.items(), key=lambda kv: int(kv[0]))},
+    }
+
+
+def save_png(img: torch.Tensor, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray((img.clamp(0, 1).numpy() * 255).round().astype(np.uint8)).save(path)
+
+
 def evaluate_run(
-    run_dir: Path, mask_dir: Path | None = None, scene: Scene | None = None, quiet: bool = False
+    run_dir: Path,
+    mask_dir: Path | None = None,
+    scene: Scene | None = None,
+    quiet: bool = False,
+    save_renders: bool = False,
 ) -> dict:
-    """Evaluate a run folder on its test views; writes and returns ``metrics.json``."""
+    """Evaluate a run folder on its test views; writes and returns ``metrics.json``.
+
+    A dataset with ``object_masks/`` is evaluated on them by default, and with
+    ``gt_nodrones/`` beside them also for per-object recall. ``save_renders`` keeps the
+    test-view renders in ``RUN/renders/``.
+    """
     run_dir = Path(run_dir)
     cfg, params = load_run(run_dir)
     if scene is None:
         scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     if mask_dir is None and (Path(cfg.dataset) / "object_masks").is_dir():
         mask_dir = Path(cfg.dataset) / "object_masks"
-    metrics = evaluate(params, scene.test_cameras, cfg.downscale, mask_dir, backend=cfg.backend, quiet=quiet)
+    no_objects = Path(cfg.dataset) / NO_OBJECTS
+    metrics = evaluate(
+        params, scene.test_cameras, cfg.downscale, mask_dir, backend=cfg.backend, quiet=quiet,
+        no_objects_dir=no_objects if no_objects.is_dir() else None,
+        render_dir=run_dir / RENDERS if save_renders else None,
+    )
     summary_path = run_dir / SUMMARY
     if summary_path.is_file():
         metrics = {**json.loads(summary_path.read_text()), **metrics}
@@ -153,6 +201,6 @@ def render_run(run_dir: Path, out_dir: Path, camera_names: list[str] | None = No
     for name in tqdm(names, desc="render", disable=quiet, unit="view"):
         img = render_view(params, cameras[name].downscaled(cfg.downscale), cfg.backend)
         path = out_dir / (Path(name).stem + ".png")
-        Image.fromarray((img.numpy() * 255).round().astype(np.uint8)).save(path)
+        save_png(img, path)
         written.append(path)
     return written

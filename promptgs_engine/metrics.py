@@ -78,3 +78,38 @@ def resize_mask(mask: torch.Tensor, height: int, width: int) -> torch.Tensor:
     if h % height == 0 and w % width == 0 and h // height == w // width:
         return F.max_pool2d(m, h // height)[0, 0].to(mask.dtype)
     return F.interpolate(m, size=(height, width), mode="nearest")[0, 0].to(mask.dtype)
+
+
+# Below this mean contrast (|drone-free − real| over the object's pixels, in [0, 1]) an
+# object is not visible in a view (hidden, or the same colour as what is behind it), and
+# the (object, view) pair is left out of recall.
+RECALL_MIN_CONTRAST = 0.02
+
+
+def object_recall(
+    img: torch.Tensor,
+    ref: torch.Tensor,
+    ref_without_objects: torch.Tensor,
+    instance_mask: torch.Tensor,
+    min_contrast: float = RECALL_MIN_CONTRAST,
+) -> dict[int, bool]:
+    """Which objects a render reconstructs in one view.
+
+    An object counts as reconstructed when the render's mean absolute error over the
+    object's pixels is less than half that of the object-free ground truth
+    (``ref_without_objects``, e.g. the drone-free render) there: the render explains most
+    of the object's contrast. Objects whose contrast is below ``min_contrast`` are not
+    visible in this view and are left out. Returns ``{object id: reconstructed}``.
+    """
+    err_render = (img - ref).abs().mean(dim=-1)
+    err_without = (ref_without_objects - ref).abs().mean(dim=-1)
+    out: dict[int, bool] = {}
+    for obj in torch.unique(instance_mask).tolist():
+        if obj == 0:
+            continue
+        pixels = instance_mask == obj
+        contrast = float(err_without[pixels].mean())
+        if contrast < min_contrast:
+            continue
+        out[int(obj)] = float(err_render[pixels].mean()) < 0.5 * contrast
+    return out

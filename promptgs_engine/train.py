@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -360,7 +361,18 @@ class Trainer:
             "n_gaussians": self.n_gaussians,
             "backend": self.backend,
             "strategy": self.cfg.strategy,
+            "peak_rss_mb": peak_rss_mb(),
         }
+
+
+def peak_rss_mb() -> float | None:
+    """Peak resident memory of this process so far, in MiB (None where unknown)."""
+    try:
+        import resource
+    except ImportError:  # Windows
+        return None
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kib / (1024.0 * 1024.0) if sys.platform == "darwin" else kib / 1024.0
 
 
 def _attach_log_file(path: Path) -> logging.Handler:
@@ -415,7 +427,7 @@ def run_training(
             log.info("resumed at step %d", trainer.step)
         summary = trainer.train()
         (out / SUMMARY).write_text(json.dumps(summary, indent=2))
-        metrics = evaluate_run(out, scene=scene, quiet=trainer.quiet)
+        metrics = evaluate_run(out, scene=scene, quiet=trainer.quiet, save_renders=cfg.save_test_renders)
         events.emit("done", out=str(out), ply=str(out / FINAL_PLY), metrics={k: v for k, v in metrics.items() if k != "per_image"})
         return metrics
     except (Exception, KeyboardInterrupt) as exc:
