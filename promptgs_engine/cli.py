@@ -1,4 +1,4 @@
-"""The promptgs command line: train, eval, render, dataset.
+"""The promptgs command line: train, eval, render, demo, dataset, bench, report.
 
 Bad input ends with a one-line ``promptgs: error: …`` on stderr and exit code 2.
 """
@@ -15,6 +15,15 @@ from . import __version__
 from .errors import PromptGSError
 
 
+def _budget(text: str) -> int | str:
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number or 'auto', got {text!r}") from None
+
+
 def _add_train(sub) -> None:
     p = sub.add_parser("train", help="train Gaussians on a COLMAP dataset")
     p.add_argument("dataset", nargs="?", help="dataset folder (images/ and sparse/0/)")
@@ -27,7 +36,7 @@ def _add_train(sub) -> None:
     p.add_argument("--seed", type=int)
     p.add_argument("--resolution-scale", type=float, help="train at this fraction of the image size (0.25: a quarter)")
     p.add_argument("--sh-degree", type=int)
-    p.add_argument("--budget", type=int, help="maximum number of Gaussians")
+    p.add_argument("--budget", type=_budget, help="maximum number of Gaussians, or 'auto': stop growing when added Gaussians stop lowering the loss")
     p.add_argument("--prompts", help="prompt file (JSON boxes in dataset coordinates)")
     p.add_argument("--center-prompt", action="store_true", default=None, help="one unit box at the origin (the paper's Ours*)")
     p.add_argument("--auto-prompts", type=int, help="add the error field's top N proposals as prompts")
@@ -121,26 +130,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_demo(sub) -> None:
-    p = sub.add_parser("demo", help="3DGS vs AbsGS vs PromptGS on the embedded tiny-objects scene")
-    p.add_argument("--out", type=Path, default=Path("runs/demo"))
-    p.add_argument("--iterations", type=int, default=1000)
-    p.add_argument("--seeds", type=int, nargs="+", default=[0])
-    p.add_argument("--scene", type=Path, help="a dataset with prompts_1.json / prompts_2.json and object_masks/ (default: the toy scene)")
-    p.set_defaults(func=cmd_demo)
-
-
-def cmd_demo(args: argparse.Namespace) -> int:
-    from .bench.tiny_objects import ensure_toy_scene, run_comparison, table
-
-    scene = args.scene or ensure_toy_scene(args.out / "toy_scene")
-    print(f"scene: {scene}")
-    summary = run_comparison(scene, args.out, args.iterations, args.seeds, quiet=False)
-    print(table(summary))
-    print(f"results: {args.out / 'results.json'}, chart: {args.out / 'comparison.png'}")
-    return 0
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="promptgs", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"promptgs {__version__}")
@@ -148,10 +137,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train(sub)
     _add_eval(sub)
     _add_render(sub)
-    _add_demo(sub)
+    from .bench.demo import add_parser as add_demo
+    from .bench.grid import add_parser as add_bench
+    from .bench.report import add_parser as add_report
     from .synthetic.cli import add_parser as add_dataset
 
+    add_demo(sub)
     add_dataset(sub)
+    add_bench(sub)
+    add_report(sub)
     return parser
 
 

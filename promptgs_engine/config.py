@@ -33,7 +33,7 @@ class TrainConfig:
     opacities_lr: float = 5e-2
     sh0_lr: float = 2.5e-3
     shN_lr: float = 2.5e-3 / 20
-    budget: int | None = None  # maximum number of Gaussians (None: no limit)
+    budget: int | str | None = None  # maximum number of Gaussians; None: no limit; "auto": stop growing when it stops paying
     snapshot_every: int = 0  # write a snapshot .npz every N steps (0: only at the end when events are on)
     checkpoint_every: int = 1000
     progress_every: int = 10
@@ -44,6 +44,11 @@ class TrainConfig:
     auto_prompts: int = 0
     progressive: bool | None = None  # None: on for promptgs, off for the baselines
     extra: dict = field(default_factory=dict)
+
+    @property
+    def budget_cap(self) -> int | None:
+        """The fixed budget, or None (no limit, or found automatically)."""
+        return None if self.budget in (None, "auto") else int(self.budget)
 
     @property
     def downscale(self) -> int:
@@ -62,8 +67,9 @@ class TrainConfig:
             raise PromptGSError(f"unknown strategy {self.strategy!r} (use {', '.join(STRATEGY_NAMES)})")
         if not 0 <= self.sh_degree <= 3:
             raise PromptGSError(f"--sh-degree must be 0..3, got {self.sh_degree}")
-        if self.budget is not None and self.budget < 1:
-            raise PromptGSError(f"--budget must be positive, got {self.budget}")
+        if self.budget is not None and self.budget != "auto":
+            if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget < 1:
+                raise PromptGSError(f"--budget must be a positive whole number or 'auto', got {self.budget!r}")
         self.downscale  # validates resolution_scale
 
     def to_json(self) -> dict:

@@ -240,7 +240,8 @@ class PromptFocus:
             for view in views:
                 img, _, _ = t.render_camera(view.camera)
                 triples.append((view.camera, img.clamp(0, 1), view.gt))
-            room = None if t.cfg.budget is None else max(t.cfg.budget - t.n_gaussians, 0)
+            budget = t.strategy.effective_budget(t.strategy_state)
+            room = None if budget is None else max(budget - t.n_gaussians, 0)
             max_points = 1000 if room is None else min(1000, room)
             if max_points <= 0:
                 break

@@ -121,6 +121,8 @@ class Trainer:
         gamma = 0.01 ** (1.0 / cfg.iterations)
         self.schedulers = [torch.optim.lr_scheduler.ExponentialLR(self.optimizers["means"], gamma=gamma)]
         self.strategy = self._make_strategy()
+        self.strategy.loss_probe = self.probe_loss
+        self._probe_views: list[tuple[Camera, torch.Tensor]] | None = None
         self.strategy.check_sanity(self.params, self.optimizers)
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene.extent)
         self.step = 0
@@ -137,14 +139,17 @@ class Trainer:
 
     def _make_strategy(self):
         if self.cfg.strategy in ("3dgs", "absgs"):
-            return make_default_strategy(self.cfg.strategy, self.schedule, budget=self.cfg.budget)
+            return make_default_strategy(
+                self.cfg.strategy, self.schedule, budget=self.cfg.budget_cap, auto_budget=self.cfg.budget == "auto"
+            )
         sched = self.schedule
         return PromptGSStrategy(
             refine_start_iter=sched.refine_start_iter,
             refine_stop_iter=sched.refine_stop_iter,
             refine_every=sched.refine_every,
             reset_every=sched.reset_every,
-            budget=self.cfg.budget,
+            budget=self.cfg.budget_cap,
+            auto_budget=self.cfg.budget == "auto",
             protect_steps=max(sched.reset_every, 2 * sched.refine_every),
             **self.cfg.extra.get("promptgs", {}),
         )
@@ -161,6 +166,28 @@ class Trainer:
         if not self._order:
             self._order = list(self.rng.permutation(len(self.scene.train_cameras)))
         return int(self._order.pop())
+
+    PROBE_VIEWS = 4
+    PROBE_WIDTH = 200
+
+    @torch.no_grad()
+    def probe_loss(self) -> float:
+        """Mean L1 of a fixed set of training views (evenly spaced, at most
+        `PROBE_WIDTH` pixels wide), rendered without gradients: a loss that does not
+        depend on which views or crops the last steps trained on (the automatic budget)."""
+        if self._probe_views is None:
+            cams = self.scene.train_cameras
+            picks = sorted({round(i * (len(cams) - 1) / max(self.PROBE_VIEWS - 1, 1)) for i in range(self.PROBE_VIEWS)})
+            self._probe_views = []
+            for i in picks:
+                cam = cams[i].downscaled(self.cfg.downscale)
+                cam = cam.downscaled(max(1, math.ceil(cam.width / self.PROBE_WIDTH)))
+                self._probe_views.append((cam, cam.load_image().to(self.device)))
+        losses = []
+        for cam, gt in self._probe_views:
+            img, _, _ = self.render_camera(cam, sh_degree=self.active_sh_degree(self.step))
+            losses.append(float((img[..., :3].clamp(0, 1) - gt).abs().mean()))
+        return sum(losses) / len(losses)
 
     # -- one step ---------------------------------------------------------------------
 
@@ -362,6 +389,8 @@ class Trainer:
             "backend": self.backend,
             "strategy": self.cfg.strategy,
             "peak_rss_mb": peak_rss_mb(),
+            "budget": self.cfg.budget,
+            "auto_budget": self.strategy_state.get("auto_budget"),
         }
 
 

@@ -54,9 +54,23 @@ class DefaultSchedule:
 class ResettingDefaultStrategy(DefaultStrategy):
     """gsplat's DefaultStrategy with the periodic opacity reset actually applied, and an
     optional Gaussian budget: when more Gaussians qualify for growth than the budget has
-    room for, the ones with the highest `growth_priority` grow."""
+    room for, the ones with the highest `growth_priority` grow.
+
+    With ``auto_budget`` the budget is found during the run: at every refinement the
+    ``loss_probe`` (a fixed set of training views rendered without gradients) is read, and
+    when the last growth bought less than ``auto_budget_elasticity`` relative loss
+    reduction per relative Gaussian increase (0.1: 10% more Gaussians for less than 1%
+    lower loss) ``auto_budget_patience`` times in a row, growth stops at the current
+    count. Pruned Gaussians may be replaced up to
+    that count. Intervals that contain an opacity reset are not judged (the reset itself
+    raises the loss).
+    """
 
     budget: int | None = None
+    auto_budget: bool = False
+    auto_budget_elasticity: float = 0.1
+    auto_budget_patience: int = 2  # judged growths in a row below the elasticity before stopping
+    loss_probe: Any = None  # callable() -> float, needed by auto_budget
 
     def step_post_backward(
         self,
@@ -81,18 +95,58 @@ class ResettingDefaultStrategy(DefaultStrategy):
         """Order in which candidates grow when the budget is short (higher first)."""
         return grads
 
+    # -- budget -----------------------------------------------------------------------
+
+    def effective_budget(self, state: dict[str, Any]) -> int | None:
+        """The cap on the Gaussian count now: the fixed budget, the automatic one once it
+        has stopped growth, the smaller of both, or None."""
+        frozen = (state.get("auto_budget") or {}).get("frozen_at")
+        caps = [b for b in (self.budget, frozen) if b is not None]
+        return min(caps) if caps else None
+
+    def _resets_between(self, start: int, end: int) -> bool:
+        """Whether an opacity reset falls on a step in [start, end)."""
+        first = -(-max(start, 1) // self.reset_every) * self.reset_every
+        return first < end and first < self.refine_stop_iter
+
+    def _update_auto_budget(self, params, state, step: int) -> None:
+        """Judge the last growth by the probe loss; freeze the count when it stopped paying."""
+        ab = state.setdefault("auto_budget", {"frozen_at": None, "last": None, "history": []})
+        if ab["frozen_at"] is not None or self.loss_probe is None:
+            return
+        loss = float(self.loss_probe())
+        n = int(params["means"].shape[0])
+        last = ab["last"]
+        if last is not None and last["grown"] and not self._resets_between(last["step"], step):
+            gain = (last["loss"] - loss) / max(last["loss"], 1e-12)
+            growth = last["grown"] / max(last["n"], 1)
+            elasticity = gain / growth
+            ab["history"].append({"step": step, "n": n, "loss": loss, "elasticity": elasticity})
+            ab["low"] = ab.get("low", 0) + 1 if elasticity < self.auto_budget_elasticity else 0
+            if ab["low"] >= self.auto_budget_patience:
+                ab["frozen_at"] = n
+                return
+        ab["last"] = {"step": step, "loss": loss, "n": n, "grown": 0}
+
     def _grow_gs(self, params, optimizers, state, step) -> tuple[int, int]:
+        if self.auto_budget:
+            self._update_auto_budget(params, state, step)
         grads = state["grad2d"] / state["count"].clamp_min(1)
         grow = self.growth_candidates(params, state, grads, step)
-        if self.budget is not None:
-            room = max(self.budget - params["means"].shape[0], 0)
+        budget = self.effective_budget(state)
+        if budget is not None:
+            room = max(budget - params["means"].shape[0], 0)
             if int(grow.sum()) > room:
                 priority = self.growth_priority(params, state, grads).masked_fill(~grow, float("-inf"))
                 keep = torch.zeros_like(grow)
                 if room > 0:
                     keep[priority.topk(room).indices] = True
                 grow = grow & keep
-        return grow_selected(params, optimizers, state, grow, self.grow_scale3d, self.revised_opacity)
+        n_dupli, n_split = grow_selected(params, optimizers, state, grow, self.grow_scale3d, self.revised_opacity)
+        last = (state.get("auto_budget") or {}).get("last")
+        if self.auto_budget and last is not None and last["step"] == step:
+            last["grown"] = n_dupli + n_split
+        return n_dupli, n_split
 
 
 def grow_selected(params, optimizers, state, grow: torch.Tensor, grow_scale3d: float, revised_opacity: bool = False) -> tuple[int, int]:
@@ -114,7 +168,7 @@ def grow_selected(params, optimizers, state, grow: torch.Tensor, grow_scale3d: f
 
 
 def make_default_strategy(
-    name: str, schedule: DefaultSchedule, budget: int | None = None, verbose: bool = False
+    name: str, schedule: DefaultSchedule, budget: int | None = None, verbose: bool = False, auto_budget: bool = False
 ) -> ResettingDefaultStrategy:
     """`3dgs`: view-space gradient threshold 2e-4; `absgs`: absolute gradients, 8e-4."""
     if name not in ("3dgs", "absgs"):
@@ -128,5 +182,6 @@ def make_default_strategy(
         refine_every=schedule.refine_every,
         reset_every=schedule.reset_every,
         budget=budget,
+        auto_budget=auto_budget,
         verbose=verbose,
     )
