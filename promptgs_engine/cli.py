@@ -1,4 +1,4 @@
-"""The promptgs command line: train, eval, render, demo, dataset, bench, report.
+"""The promptgs command line: train, eval, render, demo, dataset, bench, report, stability.
 
 Bad input ends with a one-line ``promptgs: error: …`` on stderr and exit code 2.
 """
@@ -140,12 +140,14 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench.demo import add_parser as add_demo
     from .bench.grid import add_parser as add_bench
     from .bench.report import add_parser as add_report
+    from .bench.stability import add_parser as add_stability
     from .synthetic.cli import add_parser as add_dataset
 
     add_demo(sub)
     add_dataset(sub)
     add_bench(sub)
     add_report(sub)
+    add_stability(sub)
     return parser
 
 

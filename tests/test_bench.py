@@ -203,7 +203,7 @@ def test_auto_budget_stops_growth_when_it_stops_paying(toy: Path, tmp_path: Path
     from promptgs_engine.config import TrainConfig
     from promptgs_engine.train import Trainer
 
-    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "r"), iterations=400, strategy="3dgs", budget="auto", checkpoint_every=0)
+    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "r"), iterations=200, strategy="3dgs", budget="auto", checkpoint_every=0)
     trainer = Trainer(cfg, quiet=True)
     losses = iter([0.30, 0.20, 0.199, 0.198, 0.197, 0.196, 0.195, 0.194, 0.193, 0.192, 0.191])
     trainer.strategy.loss_probe = lambda: next(losses)
