@@ -51,6 +51,7 @@ class TrainView:
     camera: Camera
     gt: torch.Tensor  # [H, W, 3]
     source: int  # index of the training camera
+    crop: bool = False  # a crop around a prompt (related-view step), not the whole image
 
 
 def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Camera:
@@ -150,7 +151,7 @@ class PromptFocus:
             cx0 = min(max((x0 + x1) // 2 - cw // 2, 0), cam.width - cw)
             cy0 = min(max((y0 + y1) // 2 - ch // 2, 0), cam.height - ch)
             gt = cam.load_image()[cy0 : cy0 + ch, cx0 : cx0 + cw]
-            out.append(TrainView(crop_camera(cam, cx0, cy0, cw, ch), gt, v))
+            out.append(TrainView(crop_camera(cam, cx0, cy0, cw, ch), gt, v, crop=True))
         # A batch renders at one size: keep the views whose crop matches the first.
         size = (out[0].camera.width, out[0].camera.height)
         return [t for t in out if (t.camera.width, t.camera.height) == size]
@@ -195,6 +196,7 @@ class PromptFocus:
         )
         info["view_loss"] = view_loss
         info["error_map"] = l1_map
+        info["crop_step"] = any(v.crop for v in views)
         if step % self.field_every:
             return
         loss_map = 0.8 * l1_map + 0.2 * dssim_map

@@ -199,26 +199,41 @@ def test_bench_command_trains_each_cell_in_its_own_process(toy: Path, tmp_path: 
 # -- automatic budget ------------------------------------------------------------------------
 
 
-def test_auto_budget_stops_growth_when_it_stops_paying(toy: Path, tmp_path: Path):
+def _auto_run(toy: Path, tmp_path: Path, probe_losses: dict[int, float]):
+    """Train the toy scene 600 steps (opacity resets at 100 and 200, growth until 300)
+    with a scripted probe loss per reset step; returns the trainer and its Gaussian
+    counts per step."""
     from promptgs_engine.config import TrainConfig
     from promptgs_engine.train import Trainer
 
-    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "r"), iterations=200, strategy="3dgs", budget="auto", checkpoint_every=0)
+    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "r"), iterations=600, strategy="3dgs", budget="auto", checkpoint_every=0)
     trainer = Trainer(cfg, quiet=True)
-    losses = iter([0.30, 0.20, 0.199, 0.198, 0.197, 0.196, 0.195, 0.194, 0.193, 0.192, 0.191])
-    trainer.strategy.loss_probe = lambda: next(losses)
-    # Probe losses: a big gain from the first growth, then almost none: growth stops
-    # after two poor growths in a row and the count never exceeds the frozen one.
+    assert (trainer.schedule.reset_every, trainer.schedule.refine_stop_iter) == (100, 300)
+    trainer.strategy.loss_probe = lambda: probe_losses[trainer.step]
+    counts = []
     while trainer.step < cfg.iterations:
         trainer.train_step()
         trainer.step += 1
-        ab = trainer.strategy_state.get("auto_budget") or {}
-        if ab.get("frozen_at") is not None:
-            assert trainer.n_gaussians <= ab["frozen_at"]
+        counts.append(trainer.n_gaussians)
+    return trainer, counts
+
+
+def test_auto_budget_stops_growth_when_a_reset_cycle_stops_paying(toy: Path, tmp_path: Path):
+    # Between the resets at 100 and 200 the Gaussians grow but the probe loss barely moves.
+    trainer, counts = _auto_run(toy, tmp_path, {100: 0.200, 200: 0.199})
     ab = trainer.strategy_state["auto_budget"]
-    assert ab["frozen_at"] is not None
-    assert [h["elasticity"] > 0.1 for h in ab["history"]][:1] == [True]
-    assert sum(h["elasticity"] < 0.1 for h in ab["history"]) == 2
+    (judged,) = ab["history"]
+    assert judged["step"] == 200 and judged["elasticity"] < 0.1
+    assert ab["frozen_at"] == counts[199]
+    assert max(counts[200:]) <= ab["frozen_at"]  # no growth past the frozen count
+    assert counts[199] > counts[99]  # (it did grow in the judged cycle)
+
+
+def test_auto_budget_keeps_growing_while_growth_pays(toy: Path, tmp_path: Path):
+    trainer, counts = _auto_run(toy, tmp_path, {100: 0.20, 200: 0.10})
+    ab = trainer.strategy_state["auto_budget"]
+    assert ab["frozen_at"] is None and ab["history"][0]["elasticity"] > 0.1
+    assert max(counts[200:300]) > counts[199]  # grew after the judged reset
 
 
 def test_budget_option_accepts_a_number_or_auto():

@@ -56,20 +56,20 @@ class ResettingDefaultStrategy(DefaultStrategy):
     optional Gaussian budget: when more Gaussians qualify for growth than the budget has
     room for, the ones with the highest `growth_priority` grow.
 
-    With ``auto_budget`` the budget is found during the run: at every refinement the
-    ``loss_probe`` (a fixed set of training views rendered without gradients) is read, and
-    when the last growth bought less than ``auto_budget_elasticity`` relative loss
-    reduction per relative Gaussian increase (0.1: 10% more Gaussians for less than 1%
-    lower loss) ``auto_budget_patience`` times in a row, growth stops at the current
-    count. Pruned Gaussians may be replaced up to
-    that count. Intervals that contain an opacity reset are not judged (the reset itself
-    raises the loss).
+    With ``auto_budget`` the budget is found during the run. Just before each opacity
+    reset the ``loss_probe`` (a fixed set of training views rendered without gradients)
+    is read, and the growth of the cycle since the previous reset is judged by its
+    elasticity: relative loss reduction per relative Gaussian increase (0.1: 10% more
+    Gaussians for 1% lower loss). Below ``auto_budget_elasticity`` growth stops at the
+    current count; pruned Gaussians may be replaced up to it. Whole reset cycles are
+    compared because both ends are then equally far from a reset, which raises the loss
+    for most of a cycle in short runs; a run with fewer than two resets in its
+    densification window (under about 600 steps) is never capped.
     """
 
     budget: int | None = None
     auto_budget: bool = False
     auto_budget_elasticity: float = 0.1
-    auto_budget_patience: int = 2  # judged growths in a row below the elasticity before stopping
     loss_probe: Any = None  # callable() -> float, needed by auto_budget
 
     def step_post_backward(
@@ -83,6 +83,8 @@ class ResettingDefaultStrategy(DefaultStrategy):
     ) -> None:
         super().step_post_backward(params, optimizers, state, step, info, packed=packed)
         if 0 < step < self.refine_stop_iter and step % self.reset_every == 0:
+            if self.auto_budget:
+                self._judge_reset_cycle(params, state, step)
             reset_opa(params=params, optimizers=optimizers, state=state, value=self.prune_opa * 2.0)
 
     # -- growth -----------------------------------------------------------------------
@@ -104,33 +106,23 @@ class ResettingDefaultStrategy(DefaultStrategy):
         caps = [b for b in (self.budget, frozen) if b is not None]
         return min(caps) if caps else None
 
-    def _resets_between(self, start: int, end: int) -> bool:
-        """Whether an opacity reset falls on a step in [start, end)."""
-        first = -(-max(start, 1) // self.reset_every) * self.reset_every
-        return first < end and first < self.refine_stop_iter
-
-    def _update_auto_budget(self, params, state, step: int) -> None:
-        """Judge the last growth by the probe loss; freeze the count when it stopped paying."""
-        ab = state.setdefault("auto_budget", {"frozen_at": None, "last": None, "history": []})
+    def _judge_reset_cycle(self, params, state, step: int) -> None:
+        """Judge the growth of the reset cycle that ends now (just before the reset)."""
+        ab = state.setdefault("auto_budget", {"frozen_at": None, "last_reset": None, "history": []})
         if ab["frozen_at"] is not None or self.loss_probe is None:
             return
         loss = float(self.loss_probe())
         n = int(params["means"].shape[0])
-        last = ab["last"]
-        if last is not None and last["grown"] and not self._resets_between(last["step"], step):
-            gain = (last["loss"] - loss) / max(last["loss"], 1e-12)
-            growth = last["grown"] / max(last["n"], 1)
-            elasticity = gain / growth
+        prev = ab["last_reset"]
+        if prev is not None and n > prev["n"]:
+            gain = (prev["loss"] - loss) / max(prev["loss"], 1e-12)
+            elasticity = gain / ((n - prev["n"]) / max(prev["n"], 1))
             ab["history"].append({"step": step, "n": n, "loss": loss, "elasticity": elasticity})
-            ab["low"] = ab.get("low", 0) + 1 if elasticity < self.auto_budget_elasticity else 0
-            if ab["low"] >= self.auto_budget_patience:
+            if elasticity < self.auto_budget_elasticity:
                 ab["frozen_at"] = n
-                return
-        ab["last"] = {"step": step, "loss": loss, "n": n, "grown": 0}
+        ab["last_reset"] = {"step": step, "loss": loss, "n": n}
 
     def _grow_gs(self, params, optimizers, state, step) -> tuple[int, int]:
-        if self.auto_budget:
-            self._update_auto_budget(params, state, step)
         grads = state["grad2d"] / state["count"].clamp_min(1)
         grow = self.growth_candidates(params, state, grads, step)
         budget = self.effective_budget(state)
@@ -142,11 +134,7 @@ class ResettingDefaultStrategy(DefaultStrategy):
                 if room > 0:
                     keep[priority.topk(room).indices] = True
                 grow = grow & keep
-        n_dupli, n_split = grow_selected(params, optimizers, state, grow, self.grow_scale3d, self.revised_opacity)
-        last = (state.get("auto_budget") or {}).get("last")
-        if self.auto_budget and last is not None and last["step"] == step:
-            last["grown"] = n_dupli + n_split
-        return n_dupli, n_split
+        return grow_selected(params, optimizers, state, grow, self.grow_scale3d, self.revised_opacity)
 
 
 def grow_selected(params, optimizers, state, grow: torch.Tensor, grow_scale3d: float, revised_opacity: bool = False) -> tuple[int, int]:

@@ -83,7 +83,17 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             state["born"] = torch.zeros(n, device=device)
 
     def _update_state(self, params, state, info, packed: bool = False) -> None:
+        # A crop step renders the region around a prompt at full resolution, over and
+        # over: its view-space gradients must not drive growth of what lies outside the
+        # prompts (the terrain behind a drone group would be densified far beyond what
+        # 3DGS gives it). Outside the boxes, growth statistics come from whole views only.
+        outside = saved = None
+        if info.get("crop_step") and state.get("grad2d") is not None:
+            outside = ~self.inside_prompts(params["means"])
+            saved = state["grad2d"][outside].clone(), state["count"][outside].clone()
         super()._update_state(params, state, info, packed=packed)
+        if saved is not None:
+            state["grad2d"][outside], state["count"][outside] = saved
         self._ensure_state(params, state)
         if "view_loss" not in info:
             return
