@@ -82,12 +82,14 @@ class Grid:
                 raise PromptGSError(f"budget {b!r}: use a positive whole number, 'auto' or 'none'")
 
     def cells(self) -> list["Cell"]:
+        """Seed by seed, so a partly run grid holds whole comparisons, and slow periods of
+        a shared machine spread over the methods rather than falling on one."""
         out = []
         for scene in self.scenes:
             for iterations in scene.iterations or self.iterations:
-                for method in self.methods:
-                    for budget in self.budgets:
-                        for seed in self.seeds:
+                for seed in self.seeds:
+                    for method in self.methods:
+                        for budget in self.budgets:
                             out.append(Cell(scene, method, budget, iterations, seed))
         return out
 

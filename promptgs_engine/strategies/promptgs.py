@@ -16,9 +16,15 @@ the opacity reset applied). Inside them:
 * **Prioritised growth.** Inside prompts the gradient threshold is lowered to
   ``prompt_grad_scale · grow_grad2d``; candidates are ranked by mean score per view
   times ``1 + attention`` (the error field fused with the prompt weight), and the
-  highest grow first. Outside prompts only the best ``outside_keep`` fraction of the
-  3DGS candidates (by score) grows, which is what keeps the total count at or below
-  the 3DGS baseline. A ``budget`` caps the total, prompt candidates first.
+  highest grow first. Outside prompts only the best ``outside_keep`` fraction (0.5) of
+  the 3DGS candidates (by score) grows at each refinement, which keeps the total count
+  below the 3DGS baseline; since growth compounds over the refinements the fraction
+  acts strongly (600-step mountain run, seed 0: 0.7 gave 137k Gaussians, 0.6 105k,
+  0.5 75k, against 111k for 3DGS; tumbler at 2000 steps with the centre prompt: 0.5
+  kept 3DGS's PSNR with two thirds of its Gaussians). Crop steps (related views
+  rendered around a prompt) do not count towards growth outside the prompts: they show
+  the same background again and again at full resolution. A ``budget`` caps the
+  total, prompt candidates first.
 * **Protection.** Gaussians born inside a prompt (by growth or resampling) are not
   pruned for ``protect_steps`` steps, so the first opacity prune does not remove an
   object before it has been seen from enough views.
@@ -52,7 +58,7 @@ LAMBDA_EDGE = 0.5
 class PromptGSStrategy(ResettingDefaultStrategy):
     prompts: list = field(default_factory=list)  # list[PromptBox]
     prompt_grad_scale: float = 0.25
-    outside_keep: float = 0.7
+    outside_keep: float = 0.5
     protect_steps: int = 500
     attention_fn: Any = None  # callable(points [N,3]) -> attention [N] in [0, 2], or None
 
