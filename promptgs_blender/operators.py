@@ -79,12 +79,16 @@ class PROMPTGS_OT_add_prompt(bpy.types.Operator):
             center = context.scene.cursor.location.copy()
             size = context.scene.promptgs.point_radius * 25.0
             half = Vector((size, size, size))
-        obj = prompts.add_prompt(context, center, half)
-        for other in context.selected_objects:
-            other.select_set(False)
-        obj.select_set(True)
-        context.view_layer.objects.active = obj
+        _make_only_selected(context, prompts.add_prompt(context, center, half))
         return {"FINISHED"}
+
+
+def _make_only_selected(context, obj) -> None:
+    """Select ``obj`` alone and make it the active object."""
+    for other in context.selected_objects:
+        other.select_set(False)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
 
 
 class PROMPTGS_OT_select_prompt(bpy.types.Operator):
@@ -100,10 +104,7 @@ class PROMPTGS_OT_select_prompt(bpy.types.Operator):
         obj = bpy.data.objects.get(self.name)
         if obj is None:
             return {"CANCELLED"}
-        for other in context.selected_objects:
-            other.select_set(False)
-        obj.select_set(True)
-        context.view_layer.objects.active = obj
+        _make_only_selected(context, obj)
         return {"FINISHED"}
 
 
