@@ -244,3 +244,17 @@ def test_budget_option_accepts_a_number_or_auto():
     for bad in (0, "many", 2.5, True):
         with pytest.raises(PromptGSError, match="--budget"):
             TrainConfig(dataset="d", out="o", budget=bad).validate()
+
+
+def test_demo_trains_both_methods_and_writes_the_report(toy: Path, tmp_path: Path, capsys):
+    out = tmp_path / "demo"
+    assert cli.main(["demo", "--scene", str(toy), "--iterations", "30", "--out", str(out)]) == 0
+    rows = read_results(out / "results.jsonl")
+    assert sorted(r["method"] for r in rows) == ["3dgs", "promptgs-2"]
+    report = out / "report"
+    for name in ("table.md", "psnr_vs_time.png", "masked_psnr_vs_time.png", "recall.png", "crops.png"):
+        assert (report / name).is_file(), name
+    table = (report / "table.md").read_text()
+    assert "3DGS" in table and "PromptGS" in table
+    printed = capsys.readouterr().out
+    assert "report:" in printed and "table.md" in printed
