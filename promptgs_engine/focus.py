@@ -247,7 +247,9 @@ class PromptFocus:
             max_points = 1000 if room is None else min(1000, room)
             if max_points <= 0:
                 break
-            carved = carve_prompt(box, triples, max_points=max_points, generator=self.generator)
+            carved = carve_prompt(
+                box, triples, max_points=max_points, error_threshold=t.strategy.carve_error_threshold, generator=self.generator
+            )
             if carved.means.shape[0]:
                 jitter = (torch.rand(carved.means.shape, generator=self.generator) - 0.5) * carved.voxel * 0.5
                 added += append_gaussians(

@@ -46,7 +46,7 @@ METHOD_NAMES = {
     "absgs": "AbsGS",
     "promptgs-center": "PromptGS, centre box",
     "promptgs-1": "PromptGS, 1 box",
-    "promptgs-2": "PromptGS, 2 boxes",
+    "promptgs-2": "PromptGS, a box per group",
     "promptgs-auto": "PromptGS, auto prompts",
 }
 METHOD_STYLES = {  # method -> (colour, marker)

@@ -60,6 +60,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
     prompt_grad_scale: float = 0.25
     outside_keep: float = 0.5
     protect_steps: int = 500
+    carve_error_threshold: float = 0.08  # per-pixel error (mean abs, 0..1) that votes for resampling
     attention_fn: Any = None  # callable(points [N,3]) -> attention [N] in [0, 2], or None
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
