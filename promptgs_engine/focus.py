@@ -42,6 +42,7 @@ log = logging.getLogger("promptgs.focus")
 PROGRESSIVE_LEVELS = (8, 4, 2)
 PROGRESSIVE_FRACTION = 7 / 30  # of the run, per level (paper: 7000 of 30000 steps)
 MIN_PROGRESSIVE_WIDTH = 64
+MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
 
 
 @dataclass
@@ -117,7 +118,14 @@ class PromptFocus:
             check_visible(prompts, self.full_cameras, source="prompts")
         self.prompts = list(prompts)
         self.related = related_views(self.prompts, self.full_cameras, self.related_k) if self.prompts else []
-        self.schedule.set_regions(self.related)
+        # Focused multiview steps need a few views that agree; a prompt seen by fewer
+        # than MIN_RELATED_VIEWS training cameras gets none (its related steps become
+        # random multiview steps): cropping the same one or two views over and over fits
+        # them at the others' expense.
+        for i, views in enumerate(self.related):
+            if len(views) < MIN_RELATED_VIEWS:
+                log.warning("prompt %d is seen by %d training cameras (fewer than %d): no focused views for it", i, len(views), MIN_RELATED_VIEWS)
+        self.schedule.set_regions([v if len(v) >= MIN_RELATED_VIEWS else [] for v in self.related])
         self.trainer.strategy.set_prompts(self.prompts)
         log.info("%d prompts; related views %s", len(self.prompts), self.related)
 

@@ -200,15 +200,16 @@ class ViewSchedule:
         self.cap = int(cap)
 
     def set_regions(self, regions: Sequence[Sequence[int]]) -> None:
-        """Replace the related-view lists; empty lists are ignored, duplicates dropped."""
+        """Replace the related-view lists (one per prompt; a batch's ``region`` is the
+        index in this list). Empty lists get no related steps; duplicates are dropped."""
         out = []
         for r in regions:
             lst = list(dict.fromkeys(int(i) for i in r))
             if any(i < 0 or i >= self.n for i in lst):
                 raise ValueError(f"region view index out of range 0..{self.n - 1}: {lst}")
-            if lst:
-                out.append(lst)
+            out.append(lst)
         self.regions = out
+        self._usable = [i for i, lst in enumerate(out) if lst]
 
     @property
     def cycle_length(self) -> int:
@@ -243,9 +244,10 @@ class ViewSchedule:
             return ViewBatch(step, SINGLE, [int(self._perm(0, epoch)[pos])])
         if kind == RANDOM_MULTIVIEW:
             return ViewBatch(step, RANDOM_MULTIVIEW, self._walk(1, o))
-        if not self.regions:  # related step without regions
+        if not self._usable:  # related step without regions
             return ViewBatch(step, RANDOM_MULTIVIEW, self._walk(2, o))
-        visit, region = divmod(o, len(self.regions))
+        visit, k = divmod(o, len(self._usable))
+        region = self._usable[k]
         views = self.regions[region]
         m = min(self.cap, len(views))
         start = (visit * m) % len(views)

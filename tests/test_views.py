@@ -122,7 +122,8 @@ def test_schedule_fallback_determinism_and_cap_changes():
     a.set_max_views(1)
     assert all(len(a.batch(t).views) == 1 for t in range(50))
     a.set_regions([[], [3, 4]])
-    assert a.batch(5).kind == RELATED_MULTIVIEW and a.batch(5).region == 0 and a.batch(5).views == [3]
+    # The region index is the prompt's, even when an earlier prompt has no views.
+    assert a.batch(5).kind == RELATED_MULTIVIEW and a.batch(5).region == 1 and a.batch(5).views == [3]
     single = ViewSchedule(5, ratio=(0, 1, 0, 0))
     assert all(single.batch(t).kind == SINGLE for t in range(20))
     with pytest.raises(ValueError):
