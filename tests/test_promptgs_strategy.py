@@ -62,6 +62,17 @@ def test_prompt_lowers_the_growth_threshold_only_inside_the_box():
     assert state["born"][-1] == 100
 
 
+def test_a_prompt_holding_most_of_the_scene_does_not_lower_the_threshold():
+    # Three of four Gaussians inside the box: it focuses nothing, so the 3DGS threshold
+    # holds everywhere and gradients at half of it grow nothing.
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [3.0, 0.0, 0.0]])
+    params, opts = _params(pts)
+    s, state = _strategy([UNIT_BOX], outside_keep=1.0)
+    g = 0.5 * s.grow_grad2d / (100 / 2.0)
+    s._update_state(params, state, _info(4, torch.tensor([[g, 0.0]] * 4)))
+    assert s._grow_gs(params, opts, state, step=100) == (0, 0)
+
+
 def test_score_ranks_a_large_gradient_in_a_high_loss_view_above_an_idle_gaussian():
     pts = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
     params, _ = _params(pts)

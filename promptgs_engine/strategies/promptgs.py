@@ -48,6 +48,10 @@ from ..gaussians import rgb_to_sh
 from ..prompts import PromptBox, boxes_contain
 from .default import ResettingDefaultStrategy
 
+# Above this fraction of the Gaussians inside the prompts, growth there uses the normal
+# 3DGS threshold (see growth_candidates).
+MAX_FOCUS_FRACTION = 0.5
+
 # Weights of the per-view loss P^i (Eq. 3).
 LAMBDA_L1 = 0.8
 LAMBDA_DSSIM = 0.2
@@ -137,7 +141,12 @@ class PromptGSStrategy(ResettingDefaultStrategy):
     def growth_candidates(self, params, state, grads, step) -> torch.Tensor:
         self._ensure_state(params, state)
         inside = self.inside_prompts(params["means"])
-        thr = torch.where(inside, torch.full_like(grads, self.grow_grad2d * self.prompt_grad_scale), torch.full_like(grads, self.grow_grad2d))
+        scale = self.prompt_grad_scale
+        if float(inside.float().mean()) > MAX_FOCUS_FRACTION:
+            # Prompts holding most of the scene focus nothing: a lowered threshold there
+            # would only grow the whole scene beyond 3DGS (2.2x on a box 10x the scene).
+            scale = 1.0
+        thr = torch.where(inside, torch.full_like(grads, self.grow_grad2d * scale), torch.full_like(grads, self.grow_grad2d))
         candidates = grads > thr
         outside = candidates & ~inside
         n_out = int(outside.sum())
