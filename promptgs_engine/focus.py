@@ -256,7 +256,8 @@ class PromptFocus:
             if max_points <= 0:
                 break
             carved = carve_prompt(
-                box, triples, max_points=max_points, error_threshold=t.strategy.carve_error_threshold, generator=self.generator
+                box, triples, max_points=max_points, error_threshold=t.strategy.carve_error_threshold,
+                max_candidates=t.strategy.carve_max_candidates, generator=self.generator,
             )
             if carved.means.shape[0]:
                 jitter = (torch.rand(carved.means.shape, generator=self.generator) - 0.5) * carved.voxel * 0.5
