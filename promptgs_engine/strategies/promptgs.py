@@ -65,7 +65,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
     outside_keep: float = 0.5
     protect_steps: int = 500
     carve_error_threshold: float = 0.08  # per-pixel error (mean abs, 0..1) that votes for resampling
-    carve_max_candidates: int = 250_000  # grid points tried per box; beyond it the grid coarsens
+    carve_max_candidates: int = 2_000_000  # grid points tried per box; beyond it the grid coarsens
     attention_fn: Any = None  # callable(points [N,3]) -> attention [N] in [0, 2], or None
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
