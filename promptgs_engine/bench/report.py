@@ -254,6 +254,12 @@ def _by_scene(aggs: list[dict]) -> dict[str, list[dict]]:
     return out
 
 
+def _scenes_where(aggs: list[dict], keep: Any) -> dict[str, list[dict]]:
+    """Per scene, the cells for which ``keep(cell)`` holds; scenes left empty are dropped."""
+    scenes = {s: [a for a in cells if keep(a)] for s, cells in _by_scene(aggs).items()}
+    return {s: c for s, c in scenes.items() if c}
+
+
 # ---------------------------------------------------------------------------- table
 
 
@@ -412,9 +418,7 @@ def plot_quality_vs_time(aggs: list[dict], metric: str, path: Path, ylabel: str,
     """One panel per scene with ``<metric>_mean``: metric vs wall time, error bars = std over
     seeds, points labelled, the Pareto front as a dashed step line with its points ringed.
     Returns False (nothing written) when no scene has the metric."""
-    scenes = {s: [a for a in cells if a[f"{metric}_mean"] is not None and a["wall_seconds_mean"] is not None]
-              for s, cells in _by_scene(aggs).items()}
-    scenes = {s: c for s, c in scenes.items() if c}
+    scenes = _scenes_where(aggs, lambda a: a[f"{metric}_mean"] is not None and a["wall_seconds_mean"] is not None)
     if not scenes:
         return False
     from matplotlib.lines import Line2D
@@ -441,8 +445,7 @@ def plot_quality_vs_time(aggs: list[dict], metric: str, path: Path, ylabel: str,
 
 def plot_psnr_vs_gaussians(aggs: list[dict], path: Path, styles: dict) -> bool:
     """PSNR vs Gaussian count per scene; a method's budgets (same iterations) joined in count order."""
-    scenes = {s: [a for a in c if a["psnr_mean"] is not None and a["n_gaussians_mean"]] for s, c in _by_scene(aggs).items()}
-    scenes = {s: c for s, c in scenes.items() if c}
+    scenes = _scenes_where(aggs, lambda a: a["psnr_mean"] is not None and a["n_gaussians_mean"])
     if not scenes:
         return False
     plt, fig, axes = _figure(len(scenes))
@@ -472,8 +475,7 @@ def plot_psnr_vs_gaussians(aggs: list[dict], path: Path, styles: dict) -> bool:
 
 def plot_recall(aggs: list[dict], path: Path, styles: dict) -> bool:
     """Bars of tiny-object recall per cell, per scene that has recall."""
-    scenes = {s: [a for a in c if a["recall_mean"] is not None] for s, c in _by_scene(aggs).items()}
-    scenes = {s: c for s, c in scenes.items() if c}
+    scenes = _scenes_where(aggs, lambda a: a["recall_mean"] is not None)
     if not scenes:
         return False
     plt, fig, axes = _figure(len(scenes))
