@@ -11,7 +11,7 @@ from promptgs_engine.focus import crop_camera
 from promptgs_engine.gaussians import init_from_points
 from promptgs_engine.prompts import PromptBox
 from promptgs_engine.render import render
-from promptgs_engine.strategies.promptgs import PromptGSStrategy, append_gaussians, carve_prompt
+from promptgs_engine.strategies.promptgs import PromptGSStrategy, append_gaussians, carve_prompt, spread_selection
 from promptgs_engine.train import make_optimizers
 
 
@@ -71,6 +71,45 @@ def test_a_prompt_holding_most_of_the_scene_does_not_lower_the_threshold():
     g = 0.5 * s.grow_grad2d / (100 / 2.0)
     s._update_state(params, state, _info(4, torch.tensor([[g, 0.0]] * 4)))
     assert s._grow_gs(params, opts, state, step=100) == (0, 0)
+
+
+def test_outside_the_prompts_the_largest_gradients_grow_not_the_highest_scores():
+    # Two outside candidates: one near the camera with a huge score (near, opaque, big on
+    # screen) and a gradient just over the threshold, one far with a gradient twice as
+    # large. With half the outside candidates kept, the larger gradient grows.
+    pts = torch.tensor([[3.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    params, opts = _params(pts)
+    s, state = _strategy([UNIT_BOX], outside_keep=0.5)
+    unit = s.grow_grad2d / (100 / 2.0)
+    info = _info(2, torch.tensor([[1.2 * unit, 0.0], [2.4 * unit, 0.0]]))
+    info["depths"] = torch.tensor([[0.1, 50.0]])
+    info["radii"] = torch.tensor([[[40, 40], [1, 1]]], dtype=torch.int32)
+    s._update_state(params, state, info)
+    score, _ = s.per_gaussian(params, state)
+    assert score[0] > score[1]
+    assert s._grow_gs(params, opts, state, step=100) == (1, 0)
+    assert torch.equal(params["means"][-1].detach(), pts[1])
+
+
+def test_spread_selection_gives_an_isolated_cluster_a_share_of_the_cap():
+    # A sheet of 400 candidates scoring 1.0 and a 3-point cluster scoring 0.8 elsewhere:
+    # the top 20 by score would all lie on the sheet.
+    xs = torch.arange(20, dtype=torch.float32) * 0.1
+    sheet = torch.stack(torch.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+    sheet = torch.cat([sheet, torch.zeros(400, 1)], dim=1)
+    cluster = torch.tensor([[5.0, 5.0, 5.0], [5.05, 5.0, 5.0], [5.0, 5.05, 5.0]])
+    points = torch.cat([sheet, cluster])
+    score = torch.cat([torch.ones(400), torch.full((3,), 0.8)])
+    chosen = spread_selection(points, score, cell=0.5, k=20)
+    assert chosen.numel() == 20 and chosen.unique().numel() == 20
+    assert bool((chosen >= 400).any())  # the cluster is represented
+    # One point per 0.5 m cell first: the sheet's 16 cells and the cluster's one cell
+    # make 17 picks, then the second round starts.
+    cells = torch.floor((points[chosen] - points.min(dim=0).values) / 0.5).long()
+    assert torch.unique(cells, dim=0).shape[0] == 17
+    # Within a round the better score comes first; asking for everything returns everything.
+    assert int(spread_selection(points, score, cell=0.5, k=1)[0]) < 400
+    assert spread_selection(points, score, cell=0.5, k=1000).numel() == 403
 
 
 def test_score_ranks_a_large_gradient_in_a_high_loss_view_above_an_idle_gaussian():

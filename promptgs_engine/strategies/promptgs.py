@@ -153,8 +153,10 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         n_out = int(outside.sum())
         keep_out = math.ceil(self.outside_keep * n_out)
         if 0 < keep_out < n_out:
-            mean_score = state["score"] / state["views"].clamp_min(1)
-            ranked = mean_score.masked_fill(~outside, float("-inf")).topk(keep_out).indices
+            # 3DGS's own criterion decides which outside candidates grow: the largest
+            # view-space gradients. (The prompt score favours near, large, opaque
+            # Gaussians, which outside the prompts are the floaters in front of cameras.)
+            ranked = grads.masked_fill(~outside, float("-inf")).topk(keep_out).indices
             kept = torch.zeros_like(outside)
             kept[ranked] = True
             candidates = (candidates & inside) | kept
@@ -206,6 +208,40 @@ class PromptGSStrategy(ResettingDefaultStrategy):
 
 
 # -- resampling ---------------------------------------------------------------------------
+
+
+# Cells of this many grid steps share the resampling cap fairly (see spread_selection).
+SPREAD_CELL_VOXELS = 4
+
+
+def spread_selection(points: torch.Tensor, score: torch.Tensor, cell: float, k: int) -> torch.Tensor:
+    """Indices of ``k`` of ``points`` [N, 3], spread over space: the best-scoring point of
+    every ``cell``-sized cube first, then the second best of every cube, and so on (by
+    score within each such round).
+
+    Resampling candidates come in two shapes: small isolated clusters (a drone a few
+    pixels wide) and wide sheets (a surface the render has not fitted yet). Taking the
+    top ``k`` by score alone lets a sheet fill the cap, so a drone that looks a little
+    less wrong than the sheet is never resampled; taking one point per cube first gives
+    every cluster a share.
+    """
+    n = points.shape[0]
+    if k >= n:
+        return torch.arange(n)
+    cells = torch.floor((points - points.min(dim=0).values) / cell).long()
+    _, cell_id = torch.unique(cells, dim=0, return_inverse=True)
+    order = torch.argsort(score, descending=True, stable=True)  # best first
+    # Rank of each point within its cube (0 = the cube's best).
+    by_cell = order[torch.argsort(cell_id[order], stable=True)]
+    sorted_ids = cell_id[by_cell]
+    first = torch.ones(n, dtype=torch.bool)
+    first[1:] = sorted_ids[1:] != sorted_ids[:-1]
+    group_start = torch.cummax(torch.where(first, torch.arange(n), torch.zeros(n, dtype=torch.long)), dim=0).values
+    rank = torch.empty(n, dtype=torch.long)
+    rank[by_cell] = torch.arange(n) - group_start
+    # Round (rank) first, score second: rank is whole, score breaks ties within a round.
+    key = rank.double() * (float(score.max() - score.min()) + 1.0) - score.double()
+    return torch.argsort(key)[:k]
 
 
 @dataclass
@@ -282,9 +318,8 @@ def carve_prompt(
     if idx.numel() == 0:
         return CarvedPoints(torch.zeros(0, 3), torch.zeros(0, 3), voxel)
     if idx.numel() > max_points:
-        # Prefer the most consistent candidates; break ties at random.
         vote = hits[idx] / seen[idx] + 1e-3 * torch.rand(idx.numel(), generator=generator)
-        idx = idx[vote.topk(max_points).indices]
+        idx = idx[spread_selection(grid[idx], vote, voxel * SPREAD_CELL_VOXELS, max_points)]
     colors = color_sum[idx] / hits[idx, None].clamp_min(1)
     return CarvedPoints(points[idx], colors.clamp(0, 1), voxel)
 
