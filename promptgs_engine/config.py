@@ -43,6 +43,7 @@ class TrainConfig:
     center_prompt: bool = False
     auto_prompts: int = 0
     progressive: bool | None = None  # None: on for promptgs, off for the baselines
+    sky: bool = True  # start a far shell of Gaussians where the cameras see background (see sky.py)
     extra: dict = field(default_factory=dict)
 
     @property

@@ -28,6 +28,7 @@ from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import ssim_map
 from .metrics import mse_to_psnr
 from .render import render
+from .sky import sky_points
 from .strategies import DefaultSchedule, make_default_strategy
 from .strategies.promptgs import PromptGSStrategy
 
@@ -114,8 +115,15 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
         self.schedule = DefaultSchedule.for_iterations(cfg.iterations)
+        points, colors = self.scene.points.float(), self.scene.point_colors.float()
+        self.n_sky_points = 0
+        if cfg.sky and points.shape[0]:
+            sky, sky_colors, _ = sky_points(self.scene.train_cameras, points)
+            points, colors = torch.cat([points, sky]), torch.cat([colors, sky_colors])
+            self.n_sky_points = sky.shape[0]
+            log.info("%d SfM points and %d far background (sky) points", self.scene.points.shape[0], self.n_sky_points)
         self.params = init_from_points(
-            self.scene.points, self.scene.point_colors, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity
+            points, colors, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity
         ).to(self.device)
         self.optimizers = make_optimizers(self.params, cfg, self.scene.extent)
         gamma = 0.01 ** (1.0 / cfg.iterations)
@@ -391,6 +399,7 @@ class Trainer:
             "peak_rss_mb": peak_rss_mb(),
             "budget": self.cfg.budget,
             "auto_budget": self.strategy_state.get("auto_budget"),
+            "sky_points": self.n_sky_points,
         }
 
 

@@ -57,6 +57,25 @@ def test_cli_train_eval_render_and_resume(toy, tmp_path, capsys):
     assert main(["render", str(out), "--camera", "nope.png", "--out", str(tmp_path / "png")]) == 2
 
 
+def test_a_far_sky_shell_starts_beside_the_sfm_points_unless_turned_off(toy, tmp_path):
+    from promptgs_engine.cli import build_parser, train_config_from_args
+
+    scene = load_colmap_scene(toy)
+    n_sfm = scene.points.shape[0]
+    with_sky = Trainer(TrainConfig(dataset=str(toy), out=str(tmp_path / "a")), scene=scene, quiet=True)
+    assert with_sky.n_sky_points > 0
+    assert with_sky.n_gaussians == n_sfm + with_sky.n_sky_points
+    # The shell lies outside every SfM point, seen from the cameras' centre.
+    centre = torch.stack([c.center for c in scene.train_cameras]).mean(dim=0)
+    shell = with_sky.params["means"][n_sfm:].detach()
+    assert float((shell - centre).norm(dim=1).min()) > float((scene.points.float() - centre).norm(dim=1).max())
+    args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "b"), "--no-sky"])
+    cfg = train_config_from_args(args)
+    assert cfg.sky is False
+    without = Trainer(cfg, scene=scene, quiet=True)
+    assert without.n_sky_points == 0 and without.n_gaussians == n_sfm
+
+
 def test_an_interrupted_run_resumes_to_the_same_result(toy, tmp_path, monkeypatch):
     a = TrainConfig(dataset=str(toy), out=str(tmp_path / "a"), iterations=40, checkpoint_every=20, seed=3)
     run_training(a, quiet=True)
