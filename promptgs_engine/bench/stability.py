@@ -541,6 +541,7 @@ def _row(case: Case, strategy: str, iters: int, run_dir: Path, result: dict) -> 
         "psnr": m.get("psnr"),
         "ssim": m.get("ssim"),
         "n_gaussians": m.get("n_gaussians"),
+        "sky_points": m.get("sky_points"),
         "seconds": round(result["seconds"], 2),
         "message": result["message"],
         "returncode": result["returncode"],
