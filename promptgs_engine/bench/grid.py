@@ -20,9 +20,7 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
-import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -31,7 +29,8 @@ from typing import Any, Callable
 import numpy as np
 
 from ..errors import PromptGSError
-from ..prompts import PromptBox, load_prompts, prompts_from_json, save_prompts
+from ..prompts import PromptBox, prompts_from_json, save_prompts
+from .process import NAN, OK, classify, error_message, run_logged
 
 SCHEMA = "promptgs-bench/1"
 METHODS = ("3dgs", "absgs", "promptgs-center", "promptgs-1", "promptgs-2", "promptgs-auto")
@@ -242,25 +241,8 @@ RunFn = Callable[[list[str], Path], tuple[int, float, float | None]]
 
 def run_process(command: list[str], log_path: Path) -> tuple[int, float, float | None]:
     """Run ``command`` with its output in ``log_path``; (exit code, wall seconds, peak RSS MiB)."""
-    t0 = time.perf_counter()
-    with log_path.open("w") as log:
-        proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
-        try:
-            _, status, usage = os.wait4(proc.pid, 0)
-        except KeyboardInterrupt:
-            proc.terminate()
-            proc.wait()
-            raise
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024.0
-
-
-def _last_error_line(log_path: Path) -> str:
-    lines = [l for l in log_path.read_text(errors="replace").splitlines() if l.strip()] if log_path.is_file() else []
-    for line in reversed(lines):
-        if line.startswith("promptgs: error:"):
-            return line[len("promptgs: error:"):].strip()
-    return lines[-1].strip() if lines else "no output"
+    result = run_logged(command, log_path)
+    return result.returncode, result.seconds, result.peak_rss_mb
 
 
 METRIC_KEYS = (
@@ -301,16 +283,18 @@ def run_cell(cell: Cell, out: Path, run: RunFn = run_process) -> dict | None:
         "finished_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "load_avg": load,
     }
-    metrics_path = run_dir / "metrics.json"
-    if code == 0 and metrics_path.is_file():
-        metrics = json.loads(metrics_path.read_text())
+    output = log_path.read_text(errors="replace") if log_path.is_file() else ""
+    ended = classify(code, output, run_dir)
+    if ended["metrics"] is not None:
+        metrics = ended["metrics"]
         row.update({k: metrics.get(k) for k in METRIC_KEYS})
         row["seconds_per_step"] = (metrics.get("train_seconds") or 0.0) / max(cell.iterations, 1)
-        finite = all(isinstance(row[k], (int, float)) and np.isfinite(row[k]) for k in ("psnr", "ssim"))
-        row["status"], row["error"] = ("ok", None) if finite else ("error", "metrics are not finite")
+    if ended["outcome"] == OK:
+        row["status"], row["error"] = "ok", None
+    elif ended["outcome"] == NAN:
+        row["status"], row["error"] = "error", f"metrics are {ended['message']}"
     else:
-        row["status"] = "error"
-        row["error"] = f"exit {code}: {_last_error_line(log_path)}"
+        row["status"], row["error"] = "error", f"exit {code}: {error_message(output)}"
     return row
 
 

@@ -41,11 +41,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import shutil
-import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -53,9 +50,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..errors import PromptGSError
+from .process import CLEAR_ERROR, CRASH, NAN, OK, classify, is_finite, run_logged  # the outcomes are this suite's too
 from .toy_scene import ToySceneConfig, look_at, make_toy_scene
 
-OK, NAN, CLEAR_ERROR, CRASH = "ok", "nan", "clear error", "crash"
 
 SIZES: dict[str, ToySceneConfig] = {
     # focal keeps the field of view of the default 256 x 192 / 220 scene
@@ -101,69 +98,13 @@ CASES: dict[str, Case] = {
 # -------------------------------------------------------------------------------------
 
 
-def _finite(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _last_line(text: str) -> str:
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    return lines[-1] if lines else ""
-
-
-def classify(returncode: int | None, stderr: str, run_dir: Path | None, timeout: float | None = None) -> dict:
-    """The outcome of one training process: ``outcome``, ``message`` and, for ``ok`` and
-    ``nan``, ``metrics`` (``metrics.json`` of ``run_dir``). ``returncode`` None means
-    the process was stopped at ``timeout`` seconds."""
-    if returncode is None:
-        return {"outcome": CRASH, "message": f"timed out after {timeout:g} s", "metrics": None}
-    if returncode == 0:
-        path = Path(run_dir) / "metrics.json" if run_dir is not None else None
-        if path is None or not path.is_file():
-            return {"outcome": CRASH, "message": "exit 0 but no metrics.json", "metrics": None}
-        try:
-            metrics = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            return {"outcome": CRASH, "message": f"exit 0 but metrics.json is unreadable ({exc})", "metrics": None}
-        bad = [k for k in ("psnr", "ssim") if not _finite(metrics.get(k))]
-        # The mean skips non-finite views; a NaN in any single view is a NaN too.
-        bad += [
-            f"{k} of {row.get('image')}"
-            for row in metrics.get("per_image", [])
-            for k in ("psnr", "ssim")
-            if isinstance(row.get(k), float) and math.isnan(row[k])
-        ]
-        if bad:
-            return {"outcome": NAN, "message": "not finite: " + ", ".join(bad), "metrics": metrics}
-        return {"outcome": OK, "message": "", "metrics": metrics}
-    line = _last_line(stderr)
-    if returncode == 2:
-        errors = [ln.strip() for ln in stderr.splitlines() if "error:" in ln]
-        if errors:
-            return {"outcome": CLEAR_ERROR, "message": errors[-1], "metrics": None}
-    if returncode < 0:
-        return {"outcome": CRASH, "message": f"killed by signal {-returncode}" + (f" ({line})" if line else ""), "metrics": None}
-    return {"outcome": CRASH, "message": line or f"exit {returncode}, nothing on stderr", "metrics": None}
-
-
 def run_command(cmd: Sequence[str], run_dir: Path | None, timeout: float, log_path: Path | None = None) -> dict:
-    """Run ``cmd``, classify how it ended; adds ``seconds`` (wall clock) and ``returncode``."""
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(
-        list(cmd), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
-    )
-    try:
-        _, stderr = proc.communicate(timeout=timeout)
-        code: int | None = proc.returncode
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, 9)  # the trainer and anything it started
-        _, stderr = proc.communicate()
-        code = None
-    seconds = time.perf_counter() - t0
-    if log_path is not None:
-        log_path.write_text(stderr or "")
-    result = classify(code, stderr or "", run_dir, timeout)
-    result.update(seconds=seconds, returncode=code)
-    return result
+    """Run ``cmd`` (output in ``log_path``), classify how it ended; adds ``seconds`` (wall
+    clock) and ``returncode``."""
+    result = run_logged(cmd, log_path, timeout)
+    outcome = classify(result.returncode, result.output, run_dir, timeout)
+    outcome.update(seconds=result.seconds, returncode=result.returncode)
+    return outcome
 
 
 # -------------------------------------------------------------------------------------
@@ -510,7 +451,7 @@ def run_stability(
                 job_path.write_text(json.dumps(job, indent=2))
                 cmd = [sys.executable, "-m", "promptgs_engine", "train", "--job", str(job_path), "--quiet", "--overwrite"]
                 limit = timeout if timeout is not None else 120.0 + 3.0 * iters
-                result = run_command(cmd, run_dir, limit, out / "logs" / f"{tag}.stderr")
+                result = run_command(cmd, run_dir, limit, out / "logs" / f"{tag}.log")
                 row = _row(case, strategy, iters, run_dir, result)
                 row["start_psnr"] = ctx["start_psnr"][case.dataset]
                 row["expected"] = case.expected
@@ -555,7 +496,7 @@ def table(rows: list[dict]) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        psnr = f"{r['psnr']:.2f}" if _finite(r.get("psnr")) else "-"
+        psnr = f"{r['psnr']:.2f}" if is_finite(r.get("psnr")) else "-"
         n = str(r["n_gaussians"]) if r.get("n_gaussians") is not None else "-"
         message = r["message"]
         if r.get("check"):
@@ -593,7 +534,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``promptgs stability``; 0 when every run passed, 1 when one failed, 2 for bad input."""
 
     def show(row: dict) -> None:
-        psnr = f"{row['psnr']:.2f}" if _finite(row.get("psnr")) else "-"
+        psnr = f"{row['psnr']:.2f}" if is_finite(row.get("psnr")) else "-"
         flag = "" if row["passed"] else "  FAILED"
         print(f"{row['case']} {row['strategy']} i{row['iterations']}: {row['outcome']} psnr={psnr} ({row['seconds']:.1f} s){flag}", flush=True)
 
