@@ -180,6 +180,10 @@ class PromptFocus:
 
     # -- after each step --------------------------------------------------------------
 
+    def feeds_field(self, step: int) -> bool:
+        """Whether this step's losses go into the error field (it then needs the depth)."""
+        return step % self.field_every == 0
+
     @torch.no_grad()
     def observe(
         self,
@@ -188,13 +192,14 @@ class PromptFocus:
         rendered: torch.Tensor,
         l1_map: torch.Tensor,
         dssim_map: torch.Tensor,
-        depth: torch.Tensor,
+        depth: torch.Tensor | None,
         alpha: torch.Tensor,
         info: dict,
     ) -> None:
         """Per-view losses and per-pixel errors for the strategy; every ``field_every``
         steps, feed the error field. ``l1_map`` and ``dssim_map`` are [C, H, W] (the maps
-        the training loss was computed from, detached)."""
+        the training loss was computed from, detached); ``depth`` [C, H, W] is needed on
+        the steps that `feeds_field`, and may be None on the others."""
         gts = torch.stack([v.gt for v in views])
         view_loss = torch.stack(
             [
@@ -205,7 +210,7 @@ class PromptFocus:
         info["view_loss"] = view_loss
         info["error_map"] = l1_map
         info["crop_step"] = any(v.crop for v in views)
-        if step % self.field_every:
+        if not self.feeds_field(step):
             return
         loss_map = 0.8 * l1_map + 0.2 * dssim_map
         for i, v in enumerate(views):
