@@ -46,7 +46,7 @@ def sky_points(
     radius = SKY_RADIUS_FACTOR * max(reach, float((centers - origin).norm(dim=1).max()), 1e-3)
     points = origin + radius * fibonacci_directions(n_directions)
     seen = torch.zeros(n_directions, dtype=torch.long)
-    colors_sum = []
+    samples = []  # (direction indices, their pixel colours) per camera
     for cam in cameras:
         factor = max(1, math.ceil(max(cam.width, cam.height) / max_image_side))
         small = cam.downscaled(factor)
@@ -60,13 +60,13 @@ def sky_points(
         inside = (z > 0) & (u >= 0) & (u < small.width) & (v >= 0) & (v < small.height)
         idx = torch.where(inside)[0]
         seen[idx] += 1
-        colors_sum.append((idx, img[v[idx].long(), u[idx].long()]))
+        samples.append((idx, img[v[idx].long(), u[idx].long()]))
     keep = seen > 0
     if not bool(keep.any()):
         return torch.zeros(0, 3), torch.zeros(0, 3), 0.0
     # Median colour per point over the cameras that see it.
-    all_idx = torch.cat([i for i, _ in colors_sum])
-    all_col = torch.cat([c for _, c in colors_sum])
+    all_idx = torch.cat([i for i, _ in samples])
+    all_col = torch.cat([c for _, c in samples])
     order = torch.argsort(all_idx, stable=True)
     all_idx, all_col = all_idx[order], all_col[order]
     counts = torch.bincount(all_idx, minlength=n_directions)
@@ -81,11 +81,12 @@ def sky_points(
     dirs = fibonacci_directions(n_directions)
     seen_ids = torch.where(keep)[0]
     unseen_ids = torch.where(~keep)[0]
-    if unseen_ids.numel():
-        cos = dirs[unseen_ids] @ dirs[seen_ids].T  # [U, S]
-        best, nearest = cos.max(dim=1)
-        near = best > math.cos(math.radians(EXTRAPOLATE_DEGREES))
-        colors[unseen_ids[near]] = colors[seen_ids[nearest[near]]]
-        keep[unseen_ids[near]] = True
+    limit = math.cos(math.radians(EXTRAPOLATE_DEGREES))
+    for start in range(0, unseen_ids.numel(), 1024):  # [1024, S] cosines at a time
+        block = unseen_ids[start : start + 1024]
+        best, nearest = (dirs[block] @ dirs[seen_ids].T).max(dim=1)
+        near = best > limit
+        colors[block[near]] = colors[seen_ids[nearest[near]]]
+        keep[block[near]] = True
     spacing = radius * math.sqrt(4.0 * math.pi / n_directions)
     return points[keep], colors[keep].clamp(0, 1), spacing
