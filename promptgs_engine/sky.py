@@ -44,19 +44,15 @@ def sky_points(
     origin = centers.mean(dim=0)
     reach = float(torch.quantile((scene_points.float() - origin).norm(dim=1), 0.95)) if scene_points.shape[0] else 0.0
     radius = SKY_RADIUS_FACTOR * max(reach, float((centers - origin).norm(dim=1).max()), 1e-3)
-    points = origin + radius * fibonacci_directions(n_directions)
+    dirs = fibonacci_directions(n_directions)
+    points = origin + radius * dirs
     seen = torch.zeros(n_directions, dtype=torch.long)
     samples = []  # (direction indices, their pixel colours) per camera
     for cam in cameras:
         factor = max(1, math.ceil(max(cam.width, cam.height) / max_image_side))
         small = cam.downscaled(factor)
         img = small.load_image()  # [H, W, 3]
-        w2c = small.world_to_camera.float()
-        p = points @ w2c[:3, :3].T + w2c[:3, 3]
-        z = p[:, 2]
-        k = small.K.float()
-        u = p[:, 0] / z.clamp_min(1e-6) * k[0, 0] + k[0, 2]
-        v = p[:, 1] / z.clamp_min(1e-6) * k[1, 1] + k[1, 2]
+        u, v, z = small.project(points)
         inside = (z > 0) & (u >= 0) & (u < small.width) & (v >= 0) & (v < small.height)
         idx = torch.where(inside)[0]
         seen[idx] += 1
@@ -78,7 +74,6 @@ def sky_points(
     # Directions just beyond what any camera saw (a novel view tilted a little higher
     # than every training view) continue the nearest seen colour, rather than leaving a
     # hole that renders black.
-    dirs = fibonacci_directions(n_directions)
     seen_ids = torch.where(keep)[0]
     unseen_ids = torch.where(~keep)[0]
     limit = math.cos(math.radians(EXTRAPOLATE_DEGREES))

@@ -97,6 +97,20 @@ def test_tumbler_points_project_onto_observations(tumbler: Scene, tumbler4: Scen
     assert np.median(errs4) < 0.25 and np.percentile(errs4, 90) < 0.5
 
 
+def test_camera_projects_world_points_to_pixels_and_depth() -> None:
+    # Camera at the origin looking down +z; a point 2 m ahead and 0.5 m right lands
+    # 0.25 focal lengths right of the principal point.
+    K = torch.tensor([[100.0, 0, 32.0], [0, 100.0, 24.0], [0, 0, 1]])
+    cam = Camera("c", 64, 48, K, torch.eye(4), Path("none"))
+    u, v, z = cam.project(torch.tensor([[0.5, 0.0, 2.0], [0.0, -0.24, 1.0]]))
+    assert torch.allclose(u, torch.tensor([57.0, 32.0])) and torch.allclose(v, torch.tensor([24.0, 0.0]))
+    assert torch.allclose(z, torch.tensor([2.0, 1.0]))
+    # The same through a translated camera: world moves, pixels do not.
+    moved = Camera("m", 64, 48, K, torch.tensor([[1.0, 0, 0, -1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), Path("none"))
+    u2, v2, z2 = moved.project(torch.tensor([[1.5, 0.0, 2.0]]))
+    assert torch.allclose(u2, torch.tensor([57.0])) and torch.allclose(z2, torch.tensor([2.0]))
+
+
 def test_tumbler_images_4_scales_intrinsics(tumbler: Scene, tumbler4: Scene) -> None:
     for full, small in zip(tumbler.cameras, tumbler4.cameras):
         assert full.name == small.name

@@ -66,6 +66,18 @@ class Camera:
         t = self.world_to_camera[:3, 3].double()
         return (-R.T @ t).float()
 
+    def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Pinhole projection of world ``points`` [N, 3]: ``(u, v, z)``, each [N]. ``u, v``
+        are continuous pixel coordinates (pixel ``(i, j)`` covers ``[i, i+1) x [j, j+1)``),
+        ``z`` the camera-space depth; points at ``z <= 0`` get meaningless ``u, v``."""
+        w2c = self.world_to_camera.to(points.dtype)
+        k = self.K.to(points.dtype)
+        p = points @ w2c[:3, :3].T + w2c[:3, 3]
+        z = p[:, 2]
+        u = p[:, 0] / z.clamp_min(1e-6) * k[0, 0] + k[0, 2]
+        v = p[:, 1] / z.clamp_min(1e-6) * k[1, 1] + k[1, 2]
+        return u, v, z
+
 
 @dataclass(eq=False)
 class Scene:

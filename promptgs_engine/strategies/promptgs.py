@@ -305,10 +305,8 @@ def carve_prompt(
         err, worst = err[0, 0], worst[0, 0]
         h, w = err.shape
         gt_flat = gt.reshape(-1, 3)
-        cam_pts = points @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
-        z = cam_pts[:, 2]
-        uv = cam_pts[:, :2] / z.clamp_min(1e-6)[:, None] * torch.stack([cam.K[0, 0], cam.K[1, 1]]) + torch.stack([cam.K[0, 2], cam.K[1, 2]])
-        px, py = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
+        u, v, z = cam.project(points)
+        px, py = torch.floor(u).long(), torch.floor(v).long()
         inside = (z > 1e-3) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
         idx = torch.where(inside)[0]
         seen[idx] += 1
