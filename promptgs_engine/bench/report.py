@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import PromptGSError
+from .process import is_finite
 
 SCHEMA = "promptgs-bench/1"
 REQUIRED_KEYS = ("cell", "scene", "method", "iterations", "seed", "status")
@@ -142,7 +143,7 @@ def _cell_sort_key(scene_order: dict[str, int], scene: str, method: str, budget:
 
 
 def _finite(values: Iterable[Any]) -> list[float]:
-    return [float(v) for v in values if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
+    return [float(v) for v in values if is_finite(v)]
 
 
 def aggregate(rows: Iterable[dict]) -> list[dict]:
