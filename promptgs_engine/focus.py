@@ -210,6 +210,8 @@ class PromptFocus:
         info["view_loss"] = view_loss
         info["error_map"] = l1_map
         info["crop_step"] = any(v.crop for v in views)
+        # Below full resolution (progressive schedule); a crop is at full resolution.
+        info["downscale"] = 1.0 if info["crop_step"] else self.full_cameras[views[0].source].width / views[0].camera.width
         if not self.feeds_field(step):
             return
         loss_map = 0.8 * l1_map + 0.2 * dssim_map
@@ -271,6 +273,7 @@ class PromptFocus:
                     scale=carved.voxel * 0.7, opacity=0.5, step=step,
                 )
         if added:
+            t.strategy.record_resampled(t.strategy_state, added)
             log.info("step %d: resampled %d Gaussians in prompts", step, added)
         return added
 

@@ -50,7 +50,7 @@ UNIT_BOX = PromptBox(center=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0))
 def test_prompt_lowers_the_growth_threshold_only_inside_the_box():
     pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])  # inside, outside
     params, opts = _params(pts)
-    s, state = _strategy([UNIT_BOX], outside_keep=1.0)
+    s, state = _strategy([UNIT_BOX])
     # Both have a mean gradient at half the 3DGS threshold (after gsplat's w/2 scaling).
     g = 0.5 * s.grow_grad2d / (100 / 2.0)
     s._update_state(params, state, _info(2, torch.tensor([[g, 0.0], [g, 0.0]])))
@@ -67,7 +67,7 @@ def test_a_prompt_holding_most_of_the_scene_does_not_lower_the_threshold():
     # holds everywhere and gradients at half of it grow nothing.
     pts = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [3.0, 0.0, 0.0]])
     params, opts = _params(pts)
-    s, state = _strategy([UNIT_BOX], outside_keep=1.0)
+    s, state = _strategy([UNIT_BOX])
     g = 0.5 * s.grow_grad2d / (100 / 2.0)
     s._update_state(params, state, _info(4, torch.tensor([[g, 0.0]] * 4)))
     assert s._grow_gs(params, opts, state, step=100) == (0, 0)
@@ -76,19 +76,66 @@ def test_a_prompt_holding_most_of_the_scene_does_not_lower_the_threshold():
 def test_outside_the_prompts_the_largest_gradients_grow_not_the_highest_scores():
     # Two outside candidates: one near the camera with a huge score (near, opaque, big on
     # screen) and a gradient just over the threshold, one far with a gradient twice as
-    # large. With half the outside candidates kept, the larger gradient grows.
+    # large. One Gaussian was resampled into the prompt, so one outside candidate gives
+    # way: the larger gradient grows.
     pts = torch.tensor([[3.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
     params, opts = _params(pts)
-    s, state = _strategy([UNIT_BOX], outside_keep=0.5)
+    s, state = _strategy([UNIT_BOX])
     unit = s.grow_grad2d / (100 / 2.0)
     info = _info(2, torch.tensor([[1.2 * unit, 0.0], [2.4 * unit, 0.0]]))
     info["depths"] = torch.tensor([[0.1, 50.0]])
     info["radii"] = torch.tensor([[[40, 40], [1, 1]]], dtype=torch.int32)
     s._update_state(params, state, info)
+    s.record_resampled(state, 1)
     score, _ = s.per_gaussian(params, state)
     assert score[0] > score[1]
     assert s._grow_gs(params, opts, state, step=100) == (1, 0)
     assert torch.equal(params["means"][-1].detach(), pts[1])
+    assert state["resampled"] == 0  # counted once, at the refinement that gave way
+
+
+def _prompt_and_outside_candidates(**kw):
+    # Inside: two Gaussians at half the 3DGS threshold (candidates only because the
+    # prompt lowers it) and one above it. Outside: three above it, by rising gradient.
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [3.0, 0.0, 0.0], [4.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    params, opts = _params(pts)
+    s, state = _strategy([UNIT_BOX], **kw)
+    unit = s.grow_grad2d / (100 / 2.0)
+    g = torch.tensor([0.5, 0.5, 2.0, 1.5, 2.5, 3.5]) * unit
+    s._update_state(params, state, _info(6, torch.stack([g, torch.zeros(6)], dim=1)))
+    return s, state, params, opts, pts
+
+
+def test_outside_growth_gives_way_to_the_prompts_extra_growth():
+    # 3DGS would grow 4 (the four above its threshold). The prompt adds 2 under it, so
+    # the 2 weakest outside candidates give way: the count grows as 3DGS's would.
+    s, state, params, opts, pts = _prompt_and_outside_candidates()
+    assert sum(s._grow_gs(params, opts, state, step=100)) == 4
+    grown = params["means"][6:].detach()
+    assert sorted(round(float(x), 3) for x in grown[:, 0]) == [0.0, 0.1, 0.2, 5.0]
+    # Without the offset, both grow: 6.
+    s, state, params, opts, _ = _prompt_and_outside_candidates(outside_offset=False)
+    assert sum(s._grow_gs(params, opts, state, step=100)) == 6
+
+
+def test_low_resolution_steps_weigh_their_gradients_by_one_over_sqrt_downscale():
+    pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    params, _ = _params(pts)
+    grads = torch.tensor([[2e-6, 0.0], [0.0, 4e-6]])  # under the score's clamp
+    s, full = _strategy([UNIT_BOX])
+    s._update_state(params, full, _info(2, grads))
+    s._update_state(params, full, _info(2, grads))
+    s, low = _strategy([UNIT_BOX])
+    s._update_state(params, low, _info(2, grads))
+    info = _info(2, grads)
+    info["downscale"] = 4.0
+    s._update_state(params, low, info)
+    # The second step counts half: 1.5 steps' worth of gradient over 2 views.
+    assert torch.allclose(low["grad2d"], 0.75 * full["grad2d"])
+    assert torch.equal(low["count"], full["count"])
+    assert float(low["score"][0]) < float(full["score"][0])
+    # The step's own gradients (used by the optimizer) are untouched.
+    assert torch.equal(info["means2d"].grad, grads.reshape(1, 2, 2))
 
 
 def test_spread_selection_gives_an_isolated_cluster_a_share_of_the_cap():
@@ -130,7 +177,7 @@ def test_score_ranks_a_large_gradient_in_a_high_loss_view_above_an_idle_gaussian
 def test_budget_caps_growth_and_prefers_prompt_candidates():
     pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
     params, opts = _params(pts)
-    s, state = _strategy([UNIT_BOX], budget=4, outside_keep=1.0)
+    s, state = _strategy([UNIT_BOX], budget=4)
     g = 10 * s.grow_grad2d / 50.0  # everyone far above threshold
     s._update_state(params, state, _info(3, torch.tensor([[g, 0.0]] * 3)))
     s._grow_gs(params, opts, state, step=100)

@@ -40,6 +40,14 @@ def test_progressive_resolution_levels(toy, tmp_path):
     # 128 px wide: 8x would be 16 px (< 64), so only 2x (64 px) stays before full size.
     levels = [focus.downscale_at(s) for s in (0, 69, 70, 139, 140, 299)]
     assert levels == [2, 2, 1, 1, 1, 1]
+    # The strategy learns each step's downscale, to weigh its gradients (1 at full size).
+    for step, expected in ((1, 2.0), (151, 1.0)):
+        views = focus.plan(step)
+        n, (h, w) = len(views), views[0].gt.shape[:2]
+        info: dict = {}
+        maps = torch.zeros(n, h, w)
+        focus.observe(step, views, torch.zeros(n, h, w, 3), maps, maps, None, maps, info)
+        assert info["downscale"] == expected and views[0].camera.width == 128 / expected
     cfg.progressive = False
     assert Trainer(cfg, quiet=True).focus.downscale_at(0) == 1
 

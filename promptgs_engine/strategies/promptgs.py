@@ -16,17 +16,19 @@ the opacity reset applied). Inside them:
 * **Prioritised growth.** Inside prompts the gradient threshold is lowered to
   ``prompt_grad_scale · grow_grad2d``; candidates are ranked by mean score per view
   times ``1 + attention`` (the error field fused with the prompt weight), and the
-  highest grow first. Outside prompts only the best ``outside_keep`` fraction (0.5) of
-  the 3DGS candidates (by view-space gradient) grows at each refinement, which keeps
-  the total count below the 3DGS baseline: progressive resolution inflates the growth
-  statistics, about twofold on the mountain dataset (docs/promptgs.md). Since growth
-  compounds over the refinements the fraction acts strongly (600-step mountain run,
-  seed 0: 0.7 gave 137k Gaussians, 0.6 105k, 0.5 75k, against 111k for 3DGS; tumbler
-  at 2000 steps with the centre prompt: 0.5 kept 3DGS's PSNR with two thirds of its
-  Gaussians). Crop steps (related views
+  highest grow first. Outside the prompts, growth is 3DGS's less what the prompts add:
+  the outside candidates (3DGS's threshold) grow by largest view-space gradient, fewer
+  by the number of Gaussians the prompts added beyond 3DGS's rule since the last
+  refinement (inside candidates below 3DGS's threshold, and resampled points), so the
+  prompts move Gaussians to where they point rather than add them. Crop steps (related views
   rendered around a prompt) do not count towards growth outside the prompts: they show
   the same background again and again at full resolution. A ``budget`` caps the
   total, prompt candidates first.
+* **Resolution-independent statistics.** A whole-view step at downscale ``f``
+  (progressive resolution) adds its view-space gradients divided by ``√f``: at low
+  resolution the per-pixel gradient of a Gaussian is larger, which grew about twice the
+  3DGS count on the mountain dataset. Dividing by ``f`` over-corrects (a third of the
+  count); measurements in docs/promptgs.md.
 * **Protection.** Gaussians born inside a prompt (by growth or resampling) are not
   pruned for ``protect_steps`` steps, so the first opacity prune does not remove an
   object before it has been seen from enough views.
@@ -60,11 +62,18 @@ LAMBDA_DSSIM = 0.2
 LAMBDA_EDGE = 0.5
 
 
+def resolution_weight(info: dict[str, Any]) -> float:
+    """Weight of a step's view-space gradients in the growth statistics: ``1 / √f`` for a
+    step rendered at ``f`` times below full resolution (``info["downscale"]``, 1 when
+    absent), so that progressive resolution does not inflate growth."""
+    return float(info.get("downscale", 1.0)) ** -0.5
+
+
 @dataclass
 class PromptGSStrategy(ResettingDefaultStrategy):
     prompts: list = field(default_factory=list)  # list[PromptBox]
     prompt_grad_scale: float = 0.25
-    outside_keep: float = 0.5
+    outside_offset: bool = True  # outside growth gives way to the prompts' extra growth
     protect_steps: int = 500
     carve_error_threshold: float = 0.08  # per-pixel error (mean abs, 0..1) that votes for resampling
     carve_max_candidates: int = 2_000_000  # grid points tried per box; beyond it the grid coarsens
@@ -75,7 +84,13 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         # score / error: sums over the views that saw each Gaussian; views: how many.
         # (gsplat's own `count` is zeroed at every refinement, these are not.)
         state.update({"score": None, "error": None, "views": None, "born": None})
+        # Gaussians resampled into the prompts since the last refinement.
+        state["resampled"] = 0
         return state
+
+    def record_resampled(self, state: dict[str, Any], n: int) -> None:
+        """Count Gaussians added to the prompts by resampling (outside growth gives way)."""
+        state["resampled"] = state.get("resampled", 0) + int(n)
 
     def set_prompts(self, prompts: Sequence[PromptBox]) -> None:
         self.prompts = list(prompts)
@@ -105,7 +120,13 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         if info.get("crop_step") and state.get("grad2d") is not None:
             outside = ~self.inside_prompts(params["means"])
             saved = state["grad2d"][outside].clone(), state["count"][outside].clone()
+        weight = resolution_weight(info)
+        before = state["grad2d"].clone() if weight != 1.0 and state.get("grad2d") is not None else None
         super()._update_state(params, state, info, packed=packed)
+        if weight != 1.0:
+            # This step's gradients, as a full-resolution step would have seen them.
+            added = state["grad2d"] - before if before is not None else state["grad2d"]
+            state["grad2d"] = (before if before is not None else 0.0) + added * weight
         if saved is not None:
             state["grad2d"][outside], state["count"][outside] = saved
         self._ensure_state(params, state)
@@ -119,7 +140,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
                 return
             w, h = info["width"], info["height"]
             grad = info["means2d"].absgrad if self.absgrad else info["means2d"].grad
-            grad = grad.clone()
+            grad = grad.clone() * weight
             grad[..., 0] *= w / 2.0 * info["n_cameras"]
             grad[..., 1] *= h / 2.0 * info["n_cameras"]
             g = (grad[cam_ids, gs_ids].norm(dim=-1) / self.grow_grad2d).clamp(0, 4)
@@ -153,14 +174,18 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         candidates = grads > thr
         outside = candidates & ~inside
         n_out = int(outside.sum())
-        keep_out = math.ceil(self.outside_keep * n_out)
-        if 0 < keep_out < n_out:
+        # What the prompts add beyond 3DGS's rule: inside candidates under its
+        # threshold, and the Gaussians resampled since the last refinement.
+        extra = int((candidates & inside & (grads <= self.grow_grad2d)).sum()) + int(state.get("resampled", 0))
+        state["resampled"] = 0
+        keep_out = max(n_out - extra, 0) if self.outside_offset else n_out
+        if keep_out < n_out:
             # 3DGS's own criterion decides which outside candidates grow: the largest
             # view-space gradients. (The prompt score favours near, large, opaque
             # Gaussians, which outside the prompts are the floaters in front of cameras.)
-            ranked = grads.masked_fill(~outside, float("-inf")).topk(keep_out).indices
             kept = torch.zeros_like(outside)
-            kept[ranked] = True
+            if keep_out > 0:
+                kept[grads.masked_fill(~outside, float("-inf")).topk(keep_out).indices] = True
             candidates = (candidates & inside) | kept
         return candidates
 
