@@ -132,11 +132,18 @@ class PromptFocus:
     # -- views ------------------------------------------------------------------------
 
     def downscale_at(self, step: int) -> int:
-        """Extra downscale of full-image steps under the progressive schedule."""
+        """Extra downscale of full-image steps under the progressive schedule: 8×, 4×, 2×
+        for 7/30 of the run each, then full size, as in the paper. A level that would
+        leave fewer than MIN_PROGRESSIVE_WIDTH pixels across uses the coarsest one that
+        does not, so the low-resolution phase keeps its 70% of the run (a 480 px view:
+        4×, 4×, 2×; a 252 px view: 2× three times). Skipping such levels instead started
+        full-size steps at 47% of the run, and the one-box mountain run took 1.70× the
+        3DGS time against 1.27×."""
         if not self.progressive:
             return 1
         width = self.full_cameras[0].width
-        levels = [f for f in PROGRESSIVE_LEVELS if width // f >= MIN_PROGRESSIVE_WIDTH]
+        coarsest = max([1] + [f for f in PROGRESSIVE_LEVELS if width // f >= MIN_PROGRESSIVE_WIDTH])
+        levels = [min(f, coarsest) for f in PROGRESSIVE_LEVELS]
         stage = int(step / (PROGRESSIVE_FRACTION * self.trainer.cfg.iterations))
         return levels[stage] if stage < len(levels) else 1
 

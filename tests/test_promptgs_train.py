@@ -37,11 +37,12 @@ def test_promptgs_resamples_into_the_prompt_and_snapshots_the_field(toy, tmp_pat
 def test_progressive_resolution_levels(toy, tmp_path):
     cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=300, strategy="promptgs", center_prompt=False)
     focus = Trainer(cfg, quiet=True).focus
-    # 128 px wide: 8x would be 16 px (< 64), so only 2x (64 px) stays before full size.
-    levels = [focus.downscale_at(s) for s in (0, 69, 70, 139, 140, 299)]
-    assert levels == [2, 2, 1, 1, 1, 1]
+    # 128 px wide: 8x and 4x would leave under 64 px, so 2x (64 px) takes their place
+    # and full size comes at 70% of the run, as in the paper.
+    levels = [focus.downscale_at(s) for s in (0, 69, 70, 139, 140, 209, 210, 299)]
+    assert levels == [2, 2, 2, 2, 2, 2, 1, 1]
     # The strategy learns each step's downscale, to weigh its gradients (1 at full size).
-    for step, expected in ((1, 2.0), (151, 1.0)):
+    for step, expected in ((1, 2.0), (251, 1.0)):
         views = focus.plan(step)
         n, (h, w) = len(views), views[0].gt.shape[:2]
         info: dict = {}
