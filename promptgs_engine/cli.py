@@ -41,6 +41,10 @@ def _add_train(sub) -> None:
     p.add_argument("--center-prompt", action="store_true", default=None, help="one unit box at the origin (the paper's Ours*)")
     p.add_argument("--auto-prompts", type=int, help="add the error field's top N proposals as prompts")
     p.add_argument("--no-sky", dest="sky", action="store_false", default=None, help="no far background shell at the start (SfM points only)")
+    p.add_argument(
+        "--progressive", action=argparse.BooleanOptionalAction, default=None,
+        help="PromptGS: train whole views at 8x/4x/2x below full size for 70%% of the run (default on; --no-progressive: full size throughout)",
+    )
     p.add_argument("--snapshot-every", type=int, help="write a snapshot for the Blender add-on every N steps")
     p.add_argument("--checkpoint-every", type=int)
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
@@ -52,7 +56,7 @@ def _add_train(sub) -> None:
 
 _TRAIN_KEYS = (
     "dataset", "out", "images", "iterations", "backend", "strategy", "seed", "resolution_scale",
-    "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "sky", "snapshot_every", "checkpoint_every",
+    "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "sky", "progressive", "snapshot_every", "checkpoint_every",
 )
 
 

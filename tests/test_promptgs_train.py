@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from promptgs_engine.cli import main
+from promptgs_engine.cli import build_parser, main, train_config_from_args
 from promptgs_engine.config import TrainConfig
 from promptgs_engine.errors import PromptError
 from promptgs_engine.prompts import load_prompts
@@ -49,7 +49,9 @@ def test_progressive_resolution_levels(toy, tmp_path):
         maps = torch.zeros(n, h, w)
         focus.observe(step, views, torch.zeros(n, h, w, 3), maps, maps, None, maps, info)
         assert info["downscale"] == expected and views[0].camera.width == 128 / expected
-    cfg.progressive = False
+    args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "b"), "--strategy", "promptgs", "--no-progressive"])
+    cfg = train_config_from_args(args)
+    assert cfg.progressive is False
     assert Trainer(cfg, quiet=True).focus.downscale_at(0) == 1
 
 
