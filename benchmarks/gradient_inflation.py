@@ -4,7 +4,7 @@ PromptGS's growth statistics (gsplat's ``grad2d``: the norm of the gradient of t
 with respect to each projected centre, in pixels of the image rendered) are gathered
 partly on downscaled steps (progressive resolution). This script loads a trained run's
 checkpoint and, for a few training views, renders each at full size and at 2× and 4×
-below, computes the training loss (0.8·L1 + 0.2·D-SSIM) against the matching ground truth
+below, computes the training loss (`photometric_loss`) against the matching ground truth
 and its gradients, and reports the ratio of the mean gradient norms over the Gaussians
 visible at both sizes.
 
@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from promptgs_engine.config import TrainConfig
-from promptgs_engine.losses import ssim_map
+from promptgs_engine.losses import photometric_loss
 from promptgs_engine.train import Trainer
 
 FACTORS = (2, 4)
@@ -34,8 +34,7 @@ def view_gradients(trainer: Trainer, camera) -> tuple[torch.Tensor, torch.Tensor
     for p in trainer.params.values():
         p.grad = None
     out, _, info = trainer.render_cameras([camera], sh_degree=trainer.cfg.sh_degree)
-    img, gt = out[..., :3], camera.load_image()[None]
-    loss = 0.8 * (img - gt).abs().mean() + 0.2 * (1.0 - ssim_map(img, gt)).mean()
+    loss = photometric_loss(out[..., :3], camera.load_image()[None], trainer.cfg.ssim_lambda)
     info["means2d"].retain_grad()
     loss.backward()
     grad = info["means2d"].grad[0].clone()
