@@ -121,12 +121,12 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             outside = ~self.inside_prompts(params["means"])
             saved = state["grad2d"][outside].clone(), state["count"][outside].clone()
         weight = resolution_weight(info)
-        before = state["grad2d"].clone() if weight != 1.0 and state.get("grad2d") is not None else None
+        if weight != 1.0:
+            before = state["grad2d"].clone() if state.get("grad2d") is not None else 0.0
         super()._update_state(params, state, info, packed=packed)
         if weight != 1.0:
             # This step's gradients, as a full-resolution step would have seen them.
-            added = state["grad2d"] - before if before is not None else state["grad2d"]
-            state["grad2d"] = (before if before is not None else 0.0) + added * weight
+            state["grad2d"] = before + (state["grad2d"] - before) * weight
         if saved is not None:
             state["grad2d"][outside], state["count"][outside] = saved
         self._ensure_state(params, state)
