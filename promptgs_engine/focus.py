@@ -10,7 +10,9 @@ and the prompt-side bookkeeping around the PromptGS strategy.
   at full detail, for the cost of a few thousand pixels.
 * **Progressive resolution.** Full-image steps run at 8×, 4×, 2× the training
   downscale before the full resolution (paper: 7k steps each at 30k; here the same
-  fractions of the run, skipping levels smaller than 64 px across).
+  fractions of the run; a level under 64 px across uses the coarsest that fits). While
+  densification runs, some single-view steps render at full size: the strategy's
+  growth statistics come from them (`is_statistics_step`).
 * **Error field.** Each step's per-pixel loss is back-projected with the rendered
   expected depth into `errorfield.ErrorField`; its attention weights prompt growth,
   its peaks become prompts with ``--auto-prompts``, and it is written to snapshots.
@@ -35,14 +37,18 @@ from .errors import PromptError
 from .losses import edge_loss
 from .prompts import PromptBox, center_prompt, check_visible, load_prompts, project_box, prompts_from_json
 from .strategies.promptgs import LAMBDA_DSSIM, LAMBDA_EDGE, LAMBDA_L1, append_gaussians, carve_prompt
-from .views import RELATED_MULTIVIEW, ViewSchedule, related_views, views_cap_from_memory
+from .views import RELATED_MULTIVIEW, SINGLE, ViewSchedule, related_views, views_cap_from_memory
 
 log = logging.getLogger("promptgs.focus")
 
 PROGRESSIVE_LEVELS = (8, 4, 2)
 PROGRESSIVE_FRACTION = 7 / 30  # of the run, per level (paper: 7000 of 30000 steps)
 MIN_PROGRESSIVE_WIDTH = 64
+RESAMPLED_OPACITY = 0.5  # of the Gaussians resampling adds
 MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
+# While densification runs in the low-resolution phase, every FULL_SIZE_EVERY-th
+# single-view step renders at full size: the growth statistics come from those.
+FULL_SIZE_EVERY = 2
 
 
 @dataclass
@@ -147,6 +153,18 @@ class PromptFocus:
         stage = int(step / (PROGRESSIVE_FRACTION * self.trainer.cfg.iterations))
         return levels[stage] if stage < len(levels) else 1
 
+    def is_statistics_step(self, step: int, kind: str) -> bool:
+        """Whether a whole-view step renders at full size although the progressive
+        schedule is below it: every FULL_SIZE_EVERY-th single-view step while
+        densification runs. The PromptGS strategy takes its growth statistics from
+        full-size steps only, so the Gaussians grow where full-resolution gradients ask
+        for them, as in 3DGS (about 30% of the steps in that part of the run)."""
+        sched = self.trainer.schedule
+        return (
+            self.downscale_at(step) > 1 and step < sched.refine_stop_iter
+            and kind == SINGLE and step % FULL_SIZE_EVERY == 0
+        )
+
     def _crop_views(self, region: int, views: list[int]) -> list[TrainView]:
         box = self.prompts[region]
         boxes = []
@@ -177,7 +195,7 @@ class PromptFocus:
             views = self._crop_views(batch.region, batch.views)
             if views:
                 return views
-        factor = self.downscale_at(step)
+        factor = 1 if self.is_statistics_step(step, batch.kind) else self.downscale_at(step)
         out = []
         for v in batch.views:
             cam = self.full_cameras[v].downscaled(factor)
@@ -271,13 +289,13 @@ class PromptFocus:
                 break
             carved = carve_prompt(
                 box, triples, max_points=max_points, error_threshold=t.strategy.carve_error_threshold,
-                max_candidates=t.strategy.carve_max_candidates, generator=self.generator,
+                max_candidates=t.strategy.carve_max_candidates, generator=self.generator, opacity=RESAMPLED_OPACITY,
             )
             if carved.means.shape[0]:
                 jitter = (torch.rand(carved.means.shape, generator=self.generator) - 0.5) * carved.voxel * 0.5
                 added += append_gaussians(
                     t.params, t.optimizers, t.strategy_state, carved.means + jitter, carved.colors,
-                    scale=carved.voxel * 0.7, opacity=0.5, step=step,
+                    scale=carved.voxel * 0.7, opacity=RESAMPLED_OPACITY, step=step,
                 )
         if added:
             t.strategy.record_resampled(t.strategy_state, added)

@@ -41,14 +41,19 @@ def test_progressive_resolution_levels(toy, tmp_path):
     # and full size comes at 70% of the run, as in the paper.
     levels = [focus.downscale_at(s) for s in (0, 69, 70, 139, 140, 209, 210, 299)]
     assert levels == [2, 2, 2, 2, 2, 2, 1, 1]
-    # The strategy learns each step's downscale, to weigh its gradients (1 at full size).
-    for step, expected in ((1, 2.0), (251, 1.0)):
+    # While densification runs (to step 150), every second single-view step is at full
+    # size: the strategy's growth statistics come from those. The strategy learns each
+    # step's downscale (1 at full size).
+    sched = focus.trainer.schedule
+    assert sched.refine_stop_iter == 150
+    for step, kind, expected in ((1, "random_multiview", 2.0), (2, "single", 1.0), (3, "single", 2.0), (152, "single", 2.0), (251, "random_multiview", 1.0)):
+        assert focus.schedule.batch(step).kind == kind
         views = focus.plan(step)
         n, (h, w) = len(views), views[0].gt.shape[:2]
         info: dict = {}
         maps = torch.zeros(n, h, w)
         focus.observe(step, views, torch.zeros(n, h, w, 3), maps, maps, None, maps, info)
-        assert info["downscale"] == expected and views[0].camera.width == 128 / expected
+        assert info["downscale"] == expected and views[0].camera.width == 128 / expected, step
     args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "b"), "--strategy", "promptgs", "--no-progressive"])
     cfg = train_config_from_args(args)
     assert cfg.progressive is False

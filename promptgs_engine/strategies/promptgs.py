@@ -24,11 +24,13 @@ the opacity reset applied). Inside them:
   rendered around a prompt) do not count towards growth outside the prompts: they show
   the same background again and again at full resolution. A ``budget`` caps the
   total, prompt candidates first.
-* **Resolution-independent statistics.** A whole-view step at downscale ``f``
-  (progressive resolution) adds its view-space gradients divided by ``√f``: at low
-  resolution the per-pixel gradient of a Gaussian is larger, which grew about twice the
-  3DGS count on the mountain dataset. Dividing by ``f`` over-corrects (a third of the
-  count); measurements in docs/promptgs.md.
+* **Growth statistics at full resolution.** Under progressive resolution, a whole-view
+  step below full size (``info["downscale"] > 1``) trains but adds nothing to the
+  growth statistics (view-space gradients, score): the trainer renders some steps at
+  full size while densification runs (`focus.PromptFocus.is_statistics_step`), and
+  growth follows their gradients, as 3DGS's does. Low-resolution gradients grew about
+  twice the 3DGS count on the mountain dataset; a fixed 1/√f weight fitted it but
+  starved the real scenes (measurements in docs/promptgs.md).
 * **Protection.** Gaussians born inside a prompt (by growth or resampling) are not
   pruned for ``protect_steps`` steps, so the first opacity prune does not remove an
   object before it has been seen from enough views.
@@ -60,13 +62,6 @@ MAX_FOCUS_FRACTION = 0.5
 LAMBDA_L1 = 0.8
 LAMBDA_DSSIM = 0.2
 LAMBDA_EDGE = 0.5
-
-
-def resolution_weight(info: dict[str, Any]) -> float:
-    """Weight of a step's view-space gradients in the growth statistics: ``1 / √f`` for a
-    step rendered at ``f`` times below full resolution (``info["downscale"]``, 1 when
-    absent), so that progressive resolution does not inflate growth."""
-    return float(info.get("downscale", 1.0)) ** -0.5
 
 
 @dataclass
@@ -120,13 +115,14 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         if info.get("crop_step") and state.get("grad2d") is not None:
             outside = ~self.inside_prompts(params["means"])
             saved = state["grad2d"][outside].clone(), state["count"][outside].clone()
-        weight = resolution_weight(info)
-        if weight != 1.0:
-            before = state["grad2d"].clone() if state.get("grad2d") is not None else 0.0
+        if float(info.get("downscale", 1.0)) > 1.0:
+            # A low-resolution step trains but does not vote for growth.
+            for key in ("grad2d", "count"):
+                if state.get(key) is None:
+                    state[key] = torch.zeros(params["means"].shape[0], device=params["means"].device)
+            self._ensure_state(params, state)
+            return
         super()._update_state(params, state, info, packed=packed)
-        if weight != 1.0:
-            # This step's gradients, as a full-resolution step would have seen them.
-            state["grad2d"] = before + (state["grad2d"] - before) * weight
         if saved is not None:
             state["grad2d"][outside], state["count"][outside] = saved
         self._ensure_state(params, state)
@@ -140,7 +136,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
                 return
             w, h = info["width"], info["height"]
             grad = info["means2d"].absgrad if self.absgrad else info["means2d"].grad
-            grad = grad.clone() * weight
+            grad = grad.clone()
             grad[..., 0] *= w / 2.0 * info["n_cameras"]
             grad[..., 1] *= h / 2.0 * info["n_cameras"]
             g = (grad[cam_ids, gs_ids].norm(dim=-1) / self.grow_grad2d).clamp(0, 4)
@@ -287,6 +283,7 @@ def carve_prompt(
     error_threshold: float = 0.08,
     max_candidates: int = 250_000,
     generator: torch.Generator | None = None,
+    opacity: float | None = None,
 ) -> CarvedPoints:
     """Points inside ``box`` where the render is wrong consistently across views.
 
@@ -295,7 +292,9 @@ def carve_prompt(
     projects to about one pixel are kept when, among the views that see them, at least
     ``min_views`` see them and a fraction ``min_vote`` has a per-pixel error above
     ``max(error_threshold, 3 × median error)`` there (3×3 max-dilated, to forgive
-    sub-pixel misalignment). The colour is the median ground truth over those views.
+    sub-pixel misalignment). The colour is the mean ground truth over those views; with
+    ``opacity``, the mean colour that a Gaussian of that opacity drawn over the render
+    needs to reproduce the ground truth there.
     """
     empty = CarvedPoints(torch.zeros(0, 3), torch.zeros(0, 3), 0.0)
     if not views:
@@ -337,7 +336,14 @@ def carve_prompt(
         seen[idx] += 1
         hit = err[py[idx], px[idx]] > thr
         hits[idx[hit]] += 1
-        color_sum[idx[hit]] += gt_flat[worst[py[idx[hit]], px[idx[hit]]]]
+        pix = worst[py[idx[hit]], px[idx[hit]]]
+        color = gt_flat[pix]
+        if opacity is not None:
+            # What a Gaussian of this opacity must carry, drawn over the current render,
+            # to give the truth there (an object narrower than a pixel shows in it
+            # mixed with what lies behind).
+            color = (color - (1.0 - opacity) * rendered.reshape(-1, 3)[pix]) / opacity
+        color_sum[idx[hit]] += color.clamp(0, 1)
     keep = (seen >= min_views) & (hits >= min_vote * seen)
     idx = torch.where(keep)[0]
     if idx.numel() == 0:
