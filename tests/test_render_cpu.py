@@ -36,7 +36,7 @@ def cameras(c: int, dtype=torch.float64):
     return viewmats, Ks
 
 
-def run_both(n, seed, colors64, sh_degree=None, bg=True, mode="RGB", n_cams=1):
+def run_both(n, seed, colors64, sh_degree=None, bg=True, mode="RGB", n_cams=1, eps2d=0.3):
     """Render with the C++ backend (float32) and the reference (float64); backprop the same
     random linear loss through both; return outputs and gradients."""
     scene = make_scene(n, seed)
@@ -48,7 +48,7 @@ def run_both(n, seed, colors64, sh_degree=None, bg=True, mode="RGB", n_cams=1):
     weights = None
     for dtype, fn in ((torch.float32, render), (torch.float64, render_reference)):
         params = [t.detach().clone().to(dtype).requires_grad_() for t in (*scene, colors64)]
-        kw = dict(sh_degree=sh_degree, render_mode=mode)
+        kw = dict(sh_degree=sh_degree, render_mode=mode, eps2d=eps2d)
         kw["backgrounds"] = None if backgrounds is None else backgrounds.to(dtype)
         if fn is render:
             kw["backend"] = "cpu"
@@ -101,6 +101,38 @@ def test_cpu_matches_reference_sh_two_cameras(sh_degree):
     assert_close_grads(cpu, ref)
     # coefficients above the degree get no gradient
     assert cpu[2][4][:, (sh_degree + 1) ** 2 :].abs().max() == 0
+
+
+def test_cpu_matches_reference_with_a_narrow_screen_filter():
+    n = 120
+    colors = torch.rand(n, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    cpu, ref = run_both(n, seed=31, colors64=colors, n_cams=2, eps2d=0.1)
+    assert (cpu[0] - ref[0]).abs().max().item() < 2e-5
+    assert_close_grads(cpu, ref)
+    # The filter is really used: the same scene renders differently with 3DGS's.
+    wide, _ = run_both(n, seed=31, colors64=colors, n_cams=2, eps2d=0.3)
+    assert (wide[0] - cpu[0]).abs().max().item() > 1e-2
+
+
+@pytest.mark.parametrize("eps2d", [0.1, 0.3])
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_screen_filter_sets_the_footprint_of_a_point(eps2d, backend):
+    """A Gaussian far smaller than a pixel, centred on a pixel, is drawn as a 2D Gaussian
+    of variance eps2d: its neighbour gets exp(-1 / (2 eps2d)) of the centre's alpha."""
+    means = torch.tensor([[0.0, 0.0, 4.0]])
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
+    scales = torch.full((1, 3), 1e-5)
+    opacities = torch.tensor([0.9])
+    colors = torch.ones(1, 3)
+    Ks = torch.tensor([[[50.0, 0.0, 10.5], [0.0, 50.0, 10.5], [0.0, 0.0, 1.0]]])  # pixel (10, 10) at the centre
+    args = (means, quats, scales, opacities, colors, torch.eye(4)[None], Ks, 21, 21)
+    if backend == "cpu":
+        _, alpha, _ = render(*args, backend="cpu", eps2d=eps2d)
+    else:
+        _, alpha, _ = render_reference(*args, eps2d=eps2d)
+    a = alpha[0, ..., 0]
+    assert a[10, 10].item() == pytest.approx(0.9, rel=1e-3)
+    assert (a[10, 11] / a[10, 10]).item() == pytest.approx(torch.exp(torch.tensor(-0.5 / eps2d)).item(), rel=1e-2)
 
 
 def test_no_background_and_dense_opaque_scene():

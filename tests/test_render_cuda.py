@@ -64,3 +64,14 @@ def test_cuda_matches_cpu_features_absgrad():
     torch.testing.assert_close(
         gpu[3]["means2d"].absgrad.cpu(), cpu[3]["means2d"].absgrad, atol=1e-3, rtol=1e-2
     )
+
+
+def test_cuda_matches_cpu_with_a_narrow_screen_filter():
+    params, sh, _, viewmats, Ks, bg = scene(300, 2)
+    cpu = _run("cpu", params, sh, viewmats, Ks, sh_degree=3, backgrounds=bg, eps2d=0.1)
+    gpu = _run("cuda", params, sh, viewmats, Ks, sh_degree=3, backgrounds=bg.cuda(), eps2d=0.1)
+    torch.testing.assert_close(gpu[0], cpu[0], atol=2e-3, rtol=1e-3)
+    for a, b in zip(gpu[2], cpu[2]):
+        assert (a - b).abs().max() <= 1e-2 * b.abs().max() + 1e-4
+    wide = _run("cpu", params, sh, viewmats, Ks, sh_degree=3, backgrounds=bg)
+    assert (wide[0] - cpu[0]).abs().max() > 1e-2  # the filter is used

@@ -12,7 +12,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from .projection import camera_centers, project_gaussians
+from .projection import EPS2D, camera_centers, project_gaussians
 from .sh import sh_to_color
 
 RENDER_MODES = ("RGB", "RGB+ED")
@@ -55,6 +55,7 @@ def render(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     backend: str = "auto",
+    eps2d: float = EPS2D,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Render N Gaussians into C pinhole cameras.
 
@@ -63,6 +64,8 @@ def render(
         colors [N,K,3] SH coefficients when ``sh_degree`` is given, else [N,D] features;
         viewmats [C,4,4] world-to-camera; Ks [C,3,3]; backgrounds [C,D] or None.
         render_mode "RGB" or "RGB+ED" (expected depth appended as the last channel).
+        eps2d: the screen-space filter, a variance in pixels² added to every projected
+        covariance (gsplat's ``eps2d``; 3DGS uses 0.3).
 
     Returns:
         colors [C,H,W,D(+1)], alphas [C,H,W,1], and ``info`` with ``means2d`` [C,N,2]
@@ -79,13 +82,13 @@ def render(
 
         return render_cuda(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-            sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane,
+            sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane, eps2d,
         )
     from .cpu import rasterize_cpu
 
     return render_with(
         rasterize_cpu, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-        sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane, backend_name="cpu",
+        sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane, backend_name="cpu", eps2d=eps2d,
     )
 
 
@@ -107,6 +110,7 @@ def render_with(
     near_plane: float,
     far_plane: float,
     backend_name: str,
+    eps2d: float = EPS2D,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Projection + colour evaluation (C++ for the cpu backend, torch otherwise), then ``rasterize``."""
     C = viewmats.shape[0]
@@ -124,11 +128,11 @@ def render_with(
 
         means2d, conics, depths, radii, sh_colors = project_cpu(
             means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane,
-            sh=colors if sh_degree is not None else None, sh_degree=sh_degree or 0,
+            sh=colors if sh_degree is not None else None, sh_degree=sh_degree or 0, eps2d=eps2d,
         )
     else:
         means2d, conics, depths, radii = project_gaussians(
-            means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane
+            means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d=eps2d
         )
         sh_colors = sh_to_color(sh_degree, means, colors, camera_centers(viewmats)) if sh_degree is not None else None
     if sh_colors is not None:

@@ -6,6 +6,8 @@ from typing import Any
 
 from torch import Tensor
 
+from .projection import EPS2D
+
 
 def render_cuda(
     means: Tensor,
@@ -23,6 +25,7 @@ def render_cuda(
     absgrad: bool,
     near_plane: float,
     far_plane: float,
+    eps2d: float = EPS2D,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """gsplat.rasterization with the arguments the CPU backend mirrors."""
     from gsplat import rasterization
@@ -39,6 +42,7 @@ def render_cuda(
         height,
         near_plane=near_plane,
         far_plane=far_plane,
+        eps2d=eps2d,
         sh_degree=sh_degree,
         packed=False,
         backgrounds=backgrounds,

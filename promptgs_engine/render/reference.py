@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .projection import ALPHA_THRESHOLD
+from .projection import ALPHA_THRESHOLD, EPS2D
 
 MAX_ALPHA = 0.999
 T_EPS = 1e-4
@@ -106,11 +106,12 @@ def render_reference(
     render_mode: str = "RGB",
     near_plane: float = 0.01,
     far_plane: float = 1e10,
+    eps2d: float = EPS2D,
 ) -> tuple[Tensor, Tensor, dict]:
     """``render()`` with the dense torch rasterizer (any dtype, autograd gradients)."""
     from . import render_with
 
     return render_with(
         rasterize_reference_batch, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-        sh_degree, backgrounds, render_mode, False, near_plane, far_plane, backend_name="reference",
+        sh_degree, backgrounds, render_mode, False, near_plane, far_plane, backend_name="reference", eps2d=eps2d,
     )
