@@ -10,6 +10,13 @@ from typing import Any
 
 from .errors import PromptGSError
 
+# The screen-space filter of full-size renders: a variance in pixels² added to every
+# projected Gaussian (gsplat's ``eps2d``). 3DGS's 0.3 draws even the smallest Gaussian
+# about three pixels across. PromptGS uses 0.1, close to the variance of a one-pixel box
+# filter (1/12), so an object one pixel wide can be drawn one pixel wide (docs/promptgs.md).
+BASELINE_SCREEN_FILTER = 0.3
+PROMPTGS_SCREEN_FILTER = 0.1
+
 
 @dataclass
 class TrainConfig:
@@ -43,6 +50,7 @@ class TrainConfig:
     center_prompt: bool = False
     auto_prompts: int = 0
     progressive: bool | None = None  # None: on for promptgs, off for the baselines
+    screen_filter: float | None = None  # px² at full size; None: PROMPTGS_SCREEN_FILTER for promptgs, else BASELINE_SCREEN_FILTER
     sky: bool = True  # start a far shell of Gaussians where the cameras see background (see sky.py)
     extra: dict = field(default_factory=dict)
 
@@ -50,6 +58,13 @@ class TrainConfig:
     def budget_cap(self) -> int | None:
         """The fixed budget, or None (no limit, or found automatically)."""
         return None if self.budget in (None, "auto") else int(self.budget)
+
+    @property
+    def effective_screen_filter(self) -> float:
+        """The screen-space filter (px²) of this run's full-size renders, training and evaluation."""
+        if self.screen_filter is not None:
+            return float(self.screen_filter)
+        return PROMPTGS_SCREEN_FILTER if self.strategy == "promptgs" else BASELINE_SCREEN_FILTER
 
     @property
     def downscale(self) -> int:
@@ -71,6 +86,11 @@ class TrainConfig:
         if self.budget is not None and self.budget != "auto":
             if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget < 1:
                 raise PromptGSError(f"--budget must be a positive whole number or 'auto', got {self.budget!r}")
+        if self.screen_filter is not None and (
+            isinstance(self.screen_filter, bool) or not isinstance(self.screen_filter, (int, float))
+            or not 0 < self.screen_filter < 100
+        ):
+            raise PromptGSError(f"--screen-filter must be a variance in pixels² between 0 and 100 (3DGS: 0.3), got {self.screen_filter!r}")
         self.downscale  # validates resolution_scale
 
     def to_json(self) -> dict:
@@ -90,4 +110,7 @@ class TrainConfig:
             data = json.loads(Path(path).read_text())
         except (OSError, json.JSONDecodeError) as exc:
             raise PromptGSError(f"{path}: cannot read training settings ({exc})") from exc
+        if isinstance(data, dict):
+            # Runs written before the setting existed rendered with 3DGS's filter.
+            data.setdefault("screen_filter", BASELINE_SCREEN_FILTER)
         return cls.from_json(data)

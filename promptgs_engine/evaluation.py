@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import torch
 from PIL import Image
 from tqdm import tqdm
 
-from .config import TrainConfig
+from .config import BASELINE_SCREEN_FILTER, TrainConfig
 from .data import Camera, Scene, load_colmap_scene
 from .errors import PromptGSError
 from .gaussians import load_ply, sh_degree_of
@@ -34,9 +36,10 @@ def load_run(run_dir: Path) -> tuple[TrainConfig, torch.nn.ParameterDict]:
 
 
 def render_view(
-    params: torch.nn.ParameterDict, camera: Camera, backend: str = "auto"
+    params: torch.nn.ParameterDict, camera: Camera, backend: str = "auto", screen_filter: float = BASELINE_SCREEN_FILTER
 ) -> torch.Tensor:
-    """Render one camera with the Gaussians in ``params``; [H, W, 3] in [0, 1]."""
+    """Render one camera with the Gaussians in ``params``; [H, W, 3] in [0, 1]. A run's
+    Gaussians render with the filter they were trained with (``cfg.effective_screen_filter``)."""
     with torch.no_grad():
         device = params["means"].device
         img, _, _ = render(
@@ -51,6 +54,7 @@ def render_view(
             camera.height,
             sh_degree=sh_degree_of(params),
             backend=backend,
+            eps2d=screen_filter,
         )
     return img[0].clamp(0, 1)
 
@@ -72,6 +76,32 @@ def read_mask(path: Path) -> torch.Tensor:
     return torch.from_numpy(arr.astype(np.int64))
 
 
+@dataclass
+class ObjectView:
+    """A test view at a run's training size with its per-object ground truth."""
+
+    name: str
+    camera: Camera
+    gt: torch.Tensor  # [H, W, 3]
+    ids: torch.Tensor  # [H, W] object ids, 0 = background
+    without_objects: torch.Tensor  # [H, W, 3] the object-free ground truth
+
+
+def object_views(cfg: TrainConfig, scene: Scene) -> Iterator[ObjectView]:
+    """The test views of a run's dataset that have both an object mask
+    (``object_masks/``) and object-free ground truth (``gt_nodrones/``)."""
+    dataset = Path(cfg.dataset)
+    for camera in scene.test_cameras:
+        cam = camera.downscaled(cfg.downscale)
+        mask_path = find_mask(dataset / "object_masks", camera.name)
+        free_path = find_mask(dataset / NO_OBJECTS, camera.name)
+        if mask_path is None or free_path is None:
+            continue
+        ids = resize_mask(read_mask(mask_path), cam.height, cam.width)
+        free = load_image_tensor(free_path, cam.downscale, (cam.width, cam.height))
+        yield ObjectView(camera.name, cam, cam.load_image(), ids, free)
+
+
 def _mean(values: list[float | None]) -> float | None:
     finite = [v for v in values if v is not None and math.isfinite(v)]
     return float(np.mean(finite)) if finite else None
@@ -86,10 +116,12 @@ def evaluate(
     quiet: bool = False,
     no_objects_dir: Path | None = None,
     render_dir: Path | None = None,
+    screen_filter: float = BASELINE_SCREEN_FILTER,
 ) -> dict:
     """PSNR/SSIM on ``cameras``; with ``mask_dir``, object-pixel and object-region PSNR;
     with ``no_objects_dir`` as well (object-free ground truth, same names), per-object
-    recall (`metrics.object_recall`). ``render_dir`` keeps each render as a PNG."""
+    recall (`metrics.object_recall`). ``render_dir`` keeps each render as a PNG.
+    ``screen_filter`` (px²) is the one the Gaussians were trained with."""
     if not cameras:
         raise PromptGSError("no test views to evaluate (the dataset has no test split)")
     if mask_dir is not None and not Path(mask_dir).is_dir():
@@ -98,7 +130,7 @@ def evaluate(
     for camera in tqdm(cameras, desc="eval", disable=quiet, unit="view"):
         cam = camera.downscaled(downscale)
         gt = cam.load_image()
-        img = render_view(params, cam, backend)
+        img = render_view(params, cam, backend, screen_filter)
         row = {"image": camera.name, "psnr": psnr(img, gt), "ssim": ssim(img, gt)}
         if mask_dir is not None:
             mask_path = find_mask(Path(mask_dir), camera.name)
@@ -171,7 +203,7 @@ def evaluate_run(
     metrics = evaluate(
         params, scene.test_cameras, cfg.downscale, mask_dir, backend=cfg.backend, quiet=quiet,
         no_objects_dir=no_objects if no_objects.is_dir() else None,
-        render_dir=run_dir / RENDERS if save_renders else None,
+        render_dir=run_dir / RENDERS if save_renders else None, screen_filter=cfg.effective_screen_filter,
     )
     summary_path = run_dir / SUMMARY
     if summary_path.is_file():
@@ -199,7 +231,7 @@ def render_run(run_dir: Path, out_dir: Path, camera_names: list[str] | None = No
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for name in tqdm(names, desc="render", disable=quiet, unit="view"):
-        img = render_view(params, cameras[name].downscaled(cfg.downscale), cfg.backend)
+        img = render_view(params, cameras[name].downscaled(cfg.downscale), cfg.backend, cfg.effective_screen_filter)
         path = out_dir / (Path(name).stem + ".png")
         save_png(img, path)
         written.append(path)

@@ -115,6 +115,7 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
         self.schedule = DefaultSchedule.for_iterations(cfg.iterations)
+        self.screen_filter = cfg.effective_screen_filter
         points, colors = self.scene.points.float(), self.scene.point_colors.float()
         self.n_sky_points = 0
         if cfg.sky and points.shape[0]:
@@ -199,8 +200,11 @@ class Trainer:
 
     # -- one step ---------------------------------------------------------------------
 
-    def render_cameras(self, cameras: list[Camera], sh_degree: int | None = None, **kwargs):
-        """Render cameras of one size in one call; returns (images [C,H,W,D], alphas, info)."""
+    def render_cameras(
+        self, cameras: list[Camera], sh_degree: int | None = None, screen_filter: float | None = None, **kwargs
+    ):
+        """Render cameras of one size in one call; returns (images [C,H,W,D], alphas, info).
+        ``screen_filter`` (px²) defaults to the run's."""
         p = self.params
         colors = torch.cat([p["sh0"], p["shN"]], dim=1)
         return render(
@@ -215,6 +219,7 @@ class Trainer:
             cameras[0].height,
             sh_degree=self.cfg.sh_degree if sh_degree is None else sh_degree,
             backend=self.backend,
+            eps2d=self.screen_filter if screen_filter is None else screen_filter,
             **kwargs,
         )
 
@@ -241,7 +246,7 @@ class Trainer:
         # PromptGS's error field needs the rendered depth, on the steps that feed it.
         with_depth = self.focus is not None and self.focus.feeds_field(step)
         out, alpha, info = self.render_cameras(
-            cameras, sh_degree=self.active_sh_degree(step), absgrad=self.absgrad,
+            cameras, sh_degree=self.active_sh_degree(step), screen_filter=views[0].screen_filter, absgrad=self.absgrad,
             render_mode="RGB+ED" if with_depth else "RGB",
         )
         img = out[..., :3]
@@ -454,6 +459,8 @@ def run_training(
         saved.iterations = cfg.iterations  # a resumed run may be extended
         cfg = saved
     cfg.validate()
+    # The run folder records the filter its renders use (evaluation renders with it too).
+    cfg.screen_filter = cfg.effective_screen_filter
     scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     out.mkdir(parents=True, exist_ok=True)
     if overwrite and not resume:

@@ -8,7 +8,7 @@ import torch
 
 from promptgs_engine.cli import build_parser, main, train_config_from_args
 from promptgs_engine.config import TrainConfig
-from promptgs_engine.errors import PromptError
+from promptgs_engine.errors import PromptError, PromptGSError
 from promptgs_engine.prompts import load_prompts
 from promptgs_engine.train import Trainer
 
@@ -54,6 +54,8 @@ def test_progressive_resolution_levels(toy, tmp_path):
         maps = torch.zeros(n, h, w)
         focus.observe(step, views, torch.zeros(n, h, w, 3), maps, maps, None, maps, info)
         assert info["downscale"] == expected and views[0].camera.width == 128 / expected, step
+        # Below full size the steps keep 3DGS's screen filter; full-size ones use the run's.
+        assert views[0].screen_filter == (0.3 if expected > 1 else None), step
     args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "b"), "--strategy", "promptgs", "--no-progressive"])
     cfg = train_config_from_args(args)
     assert cfg.progressive is False
@@ -78,3 +80,49 @@ def test_a_prompt_no_camera_sees_is_a_clear_error(toy, tmp_path, capsys):
     assert code == 2
     err = capsys.readouterr().err.strip()
     assert "prompt 0" in err and "seen by none" in err and "\n" not in err
+
+
+def test_screen_filter_per_step_and_in_evaluation(toy, tmp_path, monkeypatch):
+    """PromptGS renders full-size steps with its 0.1 px² filter and low-resolution steps
+    with 3DGS's 0.3; the run folder records the filter, and evaluation renders with it."""
+    import promptgs_engine.evaluation as evaluation
+    import promptgs_engine.train as train
+    from promptgs_engine.train import run_training
+
+    used: list[tuple[int, float]] = []
+
+    def recording(module):
+        real = module.render
+
+        def render(*args, **kwargs):
+            used.append((args[7], kwargs["eps2d"]))  # (width, filter)
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(module, "render", render)
+
+    recording(train)
+    recording(evaluation)
+    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=20, strategy="promptgs",
+                      prompts=str(toy / "prompts_1.json"), checkpoint_every=0)
+    run_training(cfg, quiet=True)
+    assert json.loads((tmp_path / "run" / "cfg.json").read_text())["screen_filter"] == 0.1
+    assert {f for w, f in used if w == 64} == {0.3}  # 2x below the toy's 128 px
+    assert {f for w, f in used if w == 128} == {0.1}  # full size, in training and evaluation
+    n_train = len(used)
+    # An old run folder (no screen_filter in cfg.json) was trained with 3DGS's filter.
+    saved = json.loads((tmp_path / "run" / "cfg.json").read_text())
+    del saved["screen_filter"]
+    (tmp_path / "run" / "cfg.json").write_text(json.dumps(saved))
+    evaluation.evaluate_run(tmp_path / "run", quiet=True)
+    assert {f for _, f in used[n_train:]} == {0.3}
+
+
+def test_screen_filter_settings(toy, tmp_path):
+    assert TrainConfig(dataset="d", out="o", strategy="promptgs").effective_screen_filter == 0.1
+    assert TrainConfig(dataset="d", out="o", strategy="3dgs").effective_screen_filter == 0.3
+    args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "r"), "--screen-filter", "0.2"])
+    cfg = train_config_from_args(args)
+    assert cfg.screen_filter == 0.2 and cfg.effective_screen_filter == 0.2
+    for bad in (0.0, -1.0, float("nan"), "wide"):
+        with pytest.raises(PromptGSError, match="--screen-filter"):
+            TrainConfig(dataset="d", out="o", screen_filter=bad).validate()
