@@ -30,41 +30,27 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-import torch
 
 from promptgs_engine.data import load_colmap_scene
-from promptgs_engine.data.images import load_image_tensor
-from promptgs_engine.evaluation import NO_OBJECTS, find_mask, load_run, read_mask, render_view
-from promptgs_engine.metrics import RECALL_MIN_CONTRAST, resize_mask
+from promptgs_engine.evaluation import NO_OBJECTS, load_run, object_views, render_view
+from promptgs_engine.metrics import visible_objects
 
 
 def pairs(baseline: Path, runs: list[Path]) -> list[dict]:
     cfg, base = load_run(baseline)
-    models = [load_run(r)[1] for r in runs]
-    dataset = Path(cfg.dataset)
+    models = [load_run(r) for r in runs]
     scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     rows = []
-    for camera in scene.test_cameras:
-        cam = camera.downscaled(cfg.downscale)
-        mask_path = find_mask(dataset / "object_masks", camera.name)
-        free_path = find_mask(dataset / NO_OBJECTS, camera.name)
-        if mask_path is None or free_path is None:
-            continue
-        gt = cam.load_image()
-        ids = resize_mask(read_mask(mask_path), cam.height, cam.width)
-        free = load_image_tensor(free_path, cam.downscale, (cam.width, cam.height))
+    for view in object_views(cfg, scene):
+        cam, gt, ids, free = view.camera, view.gt, view.ids, view.without_objects
         contrast_map = (free - gt).abs().mean(dim=-1)
-        floor_map = (render_view(base, cam, cfg.backend) - free).abs().mean(dim=-1)
-        error_maps = [(render_view(m, cam, cfg.backend) - gt).abs().mean(dim=-1) for m in models]
-        for obj in torch.unique(ids).tolist():
-            if obj == 0:
-                continue
-            pixels = ids == obj
-            contrast = float(contrast_map[pixels].mean())
-            if contrast < RECALL_MIN_CONTRAST:
-                continue
+        floor_map = (render_view(base, cam, cfg.backend, cfg.effective_screen_filter) - free).abs().mean(dim=-1)
+        error_maps = [
+            (render_view(m, cam, cfg.backend, run_cfg.effective_screen_filter) - gt).abs().mean(dim=-1) for run_cfg, m in models
+        ]
+        for obj, pixels, contrast in visible_objects(ids, contrast_map):
             rows.append({
-                "view": camera.name, "object": int(obj), "pixels": int(pixels.sum()),
+                "view": view.name, "object": obj, "pixels": int(pixels.sum()),
                 "contrast": contrast, "floor": float(floor_map[pixels].mean()),
                 "ratios": [float(e[pixels].mean()) / contrast for e in error_maps],
             })

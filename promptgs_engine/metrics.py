@@ -6,6 +6,7 @@ Images are ``[H, W, 3]`` float tensors in [0, 1]; masks are ``[H, W]`` bool (Tru
 from __future__ import annotations
 
 import math
+from typing import Iterator
 
 import torch
 import torch.nn.functional as F
@@ -86,6 +87,21 @@ def resize_mask(mask: torch.Tensor, height: int, width: int) -> torch.Tensor:
 RECALL_MIN_CONTRAST = 0.02
 
 
+def visible_objects(
+    instance_mask: torch.Tensor, contrast_map: torch.Tensor, min_contrast: float = RECALL_MIN_CONTRAST
+) -> Iterator[tuple[int, torch.Tensor, float]]:
+    """``(object id, its pixels, its contrast)`` for each object of a view whose mean
+    contrast (``contrast_map`` [H, W], |object-free truth − truth|) reaches
+    ``min_contrast``: the (object, view) pairs that recall counts."""
+    for obj in torch.unique(instance_mask).tolist():
+        if obj == 0:
+            continue
+        pixels = instance_mask == obj
+        contrast = float(contrast_map[pixels].mean())
+        if contrast >= min_contrast:
+            yield int(obj), pixels, contrast
+
+
 def object_recall(
     img: torch.Tensor,
     ref: torch.Tensor,
@@ -103,13 +119,7 @@ def object_recall(
     """
     err_render = (img - ref).abs().mean(dim=-1)
     err_without = (ref_without_objects - ref).abs().mean(dim=-1)
-    out: dict[int, bool] = {}
-    for obj in torch.unique(instance_mask).tolist():
-        if obj == 0:
-            continue
-        pixels = instance_mask == obj
-        contrast = float(err_without[pixels].mean())
-        if contrast < min_contrast:
-            continue
-        out[int(obj)] = float(err_render[pixels].mean()) < 0.5 * contrast
-    return out
+    return {
+        obj: float(err_render[pixels].mean()) < 0.5 * contrast
+        for obj, pixels, contrast in visible_objects(instance_mask, err_without, min_contrast)
+    }
