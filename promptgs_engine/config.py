@@ -9,12 +9,13 @@ from pathlib import Path
 from typing import Any
 
 from .errors import PromptGSError
+from .render.projection import EPS2D
 
 # The screen-space filter of full-size renders: a variance in pixels² added to every
 # projected Gaussian (gsplat's ``eps2d``). 3DGS's 0.3 draws even the smallest Gaussian
 # about three pixels across. PromptGS uses 0.1, close to the variance of a one-pixel box
 # filter (1/12), so an object one pixel wide can be drawn one pixel wide (docs/promptgs.md).
-BASELINE_SCREEN_FILTER = 0.3
+BASELINE_SCREEN_FILTER = EPS2D  # 0.3, the rasterizers' default
 PROMPTGS_SCREEN_FILTER = 0.1
 
 

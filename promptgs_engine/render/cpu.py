@@ -7,6 +7,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .projection import EPS2D
+
 
 def _ext() -> Any:
     try:
@@ -176,7 +178,7 @@ def project_cpu(
     far_plane: float,
     sh: Tensor | None = None,
     sh_degree: int = 0,
-    eps2d: float = 0.3,
+    eps2d: float = EPS2D,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
     """C++ projection; returns means2d, conics, depths, radii and SH colours [C,N,3] (None without sh)."""
     means2d, conics, depths, radii, colors = ProjectCPU.apply(
