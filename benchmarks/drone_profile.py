@@ -50,7 +50,7 @@ def pair_rows(run: Path) -> tuple[list[dict], list[dict], list[tuple]]:
     rows, patches = [], []
     for view in object_views(cfg, scene):
         cam, gt, ids, free = view.camera, view.gt, view.ids, view.without_objects
-        img = render_view(params, cam, cfg.backend, cfg.effective_screen_filter)
+        img = render_view(params, cam, cfg.backend, cfg.effective_screen_filter, cfg.rasterize_mode)
         signal = gt - free  # what the drone changes in the truth
         drawn = img - free  # what the render changes against the drone-free truth
         contrast_map = signal.abs().mean(dim=-1)

@@ -44,9 +44,9 @@ def pairs(baseline: Path, runs: list[Path]) -> list[dict]:
     for view in object_views(cfg, scene):
         cam, gt, ids, free = view.camera, view.gt, view.ids, view.without_objects
         contrast_map = (free - gt).abs().mean(dim=-1)
-        floor_map = (render_view(base, cam, cfg.backend, cfg.effective_screen_filter) - free).abs().mean(dim=-1)
+        floor_map = (render_view(base, cam, cfg.backend, cfg.effective_screen_filter, cfg.rasterize_mode) - free).abs().mean(dim=-1)
         error_maps = [
-            (render_view(m, cam, cfg.backend, run_cfg.effective_screen_filter) - gt).abs().mean(dim=-1) for run_cfg, m in models
+            (render_view(m, cam, cfg.backend, run_cfg.effective_screen_filter, run_cfg.rasterize_mode) - gt).abs().mean(dim=-1) for run_cfg, m in models
         ]
         for obj, pixels, contrast in visible_objects(ids, contrast_map):
             rows.append({

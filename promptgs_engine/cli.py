@@ -49,6 +49,12 @@ def _add_train(sub) -> None:
         "--screen-filter", type=float,
         help="screen-space filter of full-size renders, a variance in pixels² (default: 0.1 for promptgs, 0.3 as in 3DGS for the baselines)",
     )
+    p.add_argument(
+        "--antialiased", action=argparse.BooleanOptionalAction, default=None,
+        help="scale each Gaussian's opacity so the screen filter keeps its energy (Mip-Splatting's 2D filter): "
+        "objects smaller than a pixel stay consistent across distances and resolutions "
+        "(default on for promptgs with --prompts or --auto-prompts, off otherwise)",
+    )
     p.add_argument("--snapshot-every", type=int, help="write a snapshot for the Blender add-on every N steps")
     p.add_argument("--checkpoint-every", type=int)
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
@@ -60,7 +66,7 @@ def _add_train(sub) -> None:
 
 _TRAIN_KEYS = (
     "dataset", "out", "images", "iterations", "backend", "strategy", "seed", "resolution_scale",
-    "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "sky", "progressive", "screen_filter", "snapshot_every", "checkpoint_every",
+    "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "sky", "progressive", "screen_filter", "antialiased", "snapshot_every", "checkpoint_every",
 )
 
 

@@ -36,10 +36,15 @@ def load_run(run_dir: Path) -> tuple[TrainConfig, torch.nn.ParameterDict]:
 
 
 def render_view(
-    params: torch.nn.ParameterDict, camera: Camera, backend: str = "auto", screen_filter: float = BASELINE_SCREEN_FILTER
+    params: torch.nn.ParameterDict,
+    camera: Camera,
+    backend: str = "auto",
+    screen_filter: float = BASELINE_SCREEN_FILTER,
+    rasterize_mode: str = "classic",
 ) -> torch.Tensor:
     """Render one camera with the Gaussians in ``params``; [H, W, 3] in [0, 1]. A run's
-    Gaussians render with the filter they were trained with (``cfg.effective_screen_filter``)."""
+    Gaussians render with the filter they were trained with (``cfg.effective_screen_filter``
+    and ``cfg.rasterize_mode``)."""
     with torch.no_grad():
         device = params["means"].device
         img, _, _ = render(
@@ -55,6 +60,7 @@ def render_view(
             sh_degree=sh_degree_of(params),
             backend=backend,
             eps2d=screen_filter,
+            rasterize_mode=rasterize_mode,
         )
     return img[0].clamp(0, 1)
 
@@ -117,11 +123,12 @@ def evaluate(
     no_objects_dir: Path | None = None,
     render_dir: Path | None = None,
     screen_filter: float = BASELINE_SCREEN_FILTER,
+    rasterize_mode: str = "classic",
 ) -> dict:
     """PSNR/SSIM on ``cameras``; with ``mask_dir``, object-pixel and object-region PSNR;
     with ``no_objects_dir`` as well (object-free ground truth, same names), per-object
     recall (`metrics.object_recall`). ``render_dir`` keeps each render as a PNG.
-    ``screen_filter`` (px²) is the one the Gaussians were trained with."""
+    ``screen_filter`` (px²) and ``rasterize_mode`` are the ones the Gaussians were trained with."""
     if not cameras:
         raise PromptGSError("no test views to evaluate (the dataset has no test split)")
     if mask_dir is not None and not Path(mask_dir).is_dir():
@@ -130,7 +137,7 @@ def evaluate(
     for camera in tqdm(cameras, desc="eval", disable=quiet, unit="view"):
         cam = camera.downscaled(downscale)
         gt = cam.load_image()
-        img = render_view(params, cam, backend, screen_filter)
+        img = render_view(params, cam, backend, screen_filter, rasterize_mode)
         row = {"image": camera.name, "psnr": psnr(img, gt), "ssim": ssim(img, gt)}
         if mask_dir is not None:
             mask_path = find_mask(Path(mask_dir), camera.name)
@@ -204,6 +211,7 @@ def evaluate_run(
         params, scene.test_cameras, cfg.downscale, mask_dir, backend=cfg.backend, quiet=quiet,
         no_objects_dir=no_objects if no_objects.is_dir() else None,
         render_dir=run_dir / RENDERS if save_renders else None, screen_filter=cfg.effective_screen_filter,
+        rasterize_mode=cfg.rasterize_mode,
     )
     summary_path = run_dir / SUMMARY
     if summary_path.is_file():
@@ -231,7 +239,9 @@ def render_run(run_dir: Path, out_dir: Path, camera_names: list[str] | None = No
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for name in tqdm(names, desc="render", disable=quiet, unit="view"):
-        img = render_view(params, cameras[name].downscaled(cfg.downscale), cfg.backend, cfg.effective_screen_filter)
+        img = render_view(
+            params, cameras[name].downscaled(cfg.downscale), cfg.backend, cfg.effective_screen_filter, cfg.rasterize_mode
+        )
         path = out_dir / (Path(name).stem + ".png")
         save_png(img, path)
         written.append(path)

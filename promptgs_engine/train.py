@@ -116,6 +116,7 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed)
         self.schedule = DefaultSchedule.for_iterations(cfg.iterations)
         self.screen_filter = cfg.effective_screen_filter
+        self.rasterize_mode = cfg.rasterize_mode
         points, colors = self.scene.points.float(), self.scene.point_colors.float()
         self.n_sky_points = 0
         if cfg.sky and points.shape[0]:
@@ -220,6 +221,7 @@ class Trainer:
             sh_degree=self.cfg.sh_degree if sh_degree is None else sh_degree,
             backend=self.backend,
             eps2d=self.screen_filter if screen_filter is None else screen_filter,
+            rasterize_mode=self.rasterize_mode,
             **kwargs,
         )
 
@@ -461,6 +463,7 @@ def run_training(
     cfg.validate()
     # The run folder records the filter its renders use (evaluation renders with it too).
     cfg.screen_filter = cfg.effective_screen_filter
+    cfg.antialiased = cfg.rasterize_mode == "antialiased"
     scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     out.mkdir(parents=True, exist_ok=True)
     if overwrite and not resume:

@@ -117,6 +117,58 @@ def test_screen_filter_per_step_and_in_evaluation(toy, tmp_path, monkeypatch):
     assert {f for _, f in used[n_train:]} == {0.3}
 
 
+def test_antialiased_filter_in_training_and_evaluation(toy, tmp_path, monkeypatch):
+    """A run with drawn prompts renders every step (low-resolution ones too) and its
+    evaluation antialiased; cfg.json records it, and an old run folder reads as classic."""
+    import promptgs_engine.evaluation as evaluation
+    import promptgs_engine.train as train
+    from promptgs_engine.train import run_training
+
+    used: list[tuple[str, str]] = []
+
+    def recording(module, where):
+        real = module.render
+
+        def render(*args, **kwargs):
+            used.append((where, kwargs.get("rasterize_mode", "classic")))
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(module, "render", render)
+
+    recording(train, "train")
+    recording(evaluation, "eval")
+    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=20, strategy="promptgs",
+                      prompts=str(toy / "prompts_1.json"), checkpoint_every=0)
+    run_training(cfg, quiet=True)
+    assert json.loads((tmp_path / "run" / "cfg.json").read_text())["antialiased"] is True
+    assert {m for w, m in used if w == "train"} == {"antialiased"}
+    assert {m for w, m in used if w == "eval"} == {"antialiased"}
+    saved = json.loads((tmp_path / "run" / "cfg.json").read_text())
+    del saved["antialiased"]
+    (tmp_path / "run" / "cfg.json").write_text(json.dumps(saved))
+    used.clear()
+    evaluation.evaluate_run(tmp_path / "run", quiet=True)
+    assert {m for _, m in used} == {"classic"}
+
+
+def test_antialiased_settings(toy, tmp_path):
+    def mode(**kw):
+        return TrainConfig(dataset="d", out="o", **kw).rasterize_mode
+
+    assert mode(strategy="promptgs", prompts="p.json") == "antialiased"
+    assert mode(strategy="promptgs", auto_prompts=2) == "antialiased"
+    assert mode(strategy="promptgs", center_prompt=True) == "classic"
+    assert mode(strategy="3dgs") == "classic" and mode(strategy="absgs", prompts="p.json") == "classic"
+    assert mode(strategy="promptgs", prompts="p.json", antialiased=False) == "classic"
+    assert mode(strategy="3dgs", antialiased=True) == "antialiased"
+    args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "r"), "--no-antialiased"])
+    assert train_config_from_args(args).antialiased is False
+    args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "r"), "--antialiased"])
+    assert train_config_from_args(args).rasterize_mode == "antialiased"
+    with pytest.raises(PromptGSError, match="antialiased"):
+        TrainConfig(dataset="d", out="o", antialiased="yes").validate()
+
+
 def test_screen_filter_settings(toy, tmp_path):
     assert TrainConfig(dataset="d", out="o", strategy="promptgs").effective_screen_filter == 0.1
     assert TrainConfig(dataset="d", out="o", strategy="3dgs").effective_screen_filter == 0.3

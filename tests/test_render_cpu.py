@@ -36,7 +36,7 @@ def cameras(c: int, dtype=torch.float64):
     return viewmats, Ks
 
 
-def run_both(n, seed, colors64, sh_degree=None, bg=True, mode="RGB", n_cams=1, eps2d=0.3):
+def run_both(n, seed, colors64, sh_degree=None, bg=True, mode="RGB", n_cams=1, eps2d=0.3, rasterize_mode="classic"):
     """Render with the C++ backend (float32) and the reference (float64); backprop the same
     random linear loss through both; return outputs and gradients."""
     scene = make_scene(n, seed)
@@ -48,7 +48,7 @@ def run_both(n, seed, colors64, sh_degree=None, bg=True, mode="RGB", n_cams=1, e
     weights = None
     for dtype, fn in ((torch.float32, render), (torch.float64, render_reference)):
         params = [t.detach().clone().to(dtype).requires_grad_() for t in (*scene, colors64)]
-        kw = dict(sh_degree=sh_degree, render_mode=mode, eps2d=eps2d)
+        kw = dict(sh_degree=sh_degree, render_mode=mode, eps2d=eps2d, rasterize_mode=rasterize_mode)
         kw["backgrounds"] = None if backgrounds is None else backgrounds.to(dtype)
         if fn is render:
             kw["backend"] = "cpu"
@@ -133,6 +133,50 @@ def test_screen_filter_sets_the_footprint_of_a_point(eps2d, backend):
     a = alpha[0, ..., 0]
     assert a[10, 10].item() == pytest.approx(0.9, rel=1e-3)
     assert (a[10, 11] / a[10, 10]).item() == pytest.approx(torch.exp(torch.tensor(-0.5 / eps2d)).item(), rel=1e-2)
+
+
+def test_cpu_matches_reference_antialiased():
+    """The compensated filter: images and every gradient (through the per-camera opacities
+    into scales, quats and means) match the reference, and differ from the classic mode."""
+    n = 120
+    colors = torch.rand(n, 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    cpu, ref = run_both(n, seed=33, colors64=colors, n_cams=2, eps2d=0.1, rasterize_mode="antialiased")
+    assert (cpu[0] - ref[0]).abs().max().item() < 2e-5
+    assert_close_grads(cpu, ref)
+    classic, _ = run_both(n, seed=33, colors64=colors, n_cams=2, eps2d=0.1)
+    assert (classic[0] - cpu[0]).abs().max().item() > 1e-2
+
+
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_antialiased_filter_keeps_a_tiny_gaussians_energy(backend):
+    """Classic mode draws a point at full opacity whatever its size, so its summed alpha is
+    the same from every distance; antialiased mode scales it with the projected area, as a
+    real sub-pixel object covers a pixel (twice the distance, a quarter of the energy)."""
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
+    scales = torch.full((1, 3), 0.004)  # 0.05 px std at depth 4 with f = 50
+    opacities = torch.tensor([0.9])
+    colors = torch.ones(1, 3)
+    Ks = torch.tensor([[[50.0, 0.0, 10.5], [0.0, 50.0, 10.5], [0.0, 0.0, 1.0]]])
+
+    def energy(depth: float, mode: str) -> float:
+        args = (torch.tensor([[0.0, 0.0, depth]]), quats, scales, opacities, colors, torch.eye(4)[None], Ks, 21, 21)
+        fn = render if backend == "cpu" else render_reference
+        kw = {"backend": "cpu"} if backend == "cpu" else {}
+        _, alpha, _ = fn(*args, eps2d=0.1, rasterize_mode=mode, **kw)
+        return alpha.sum().item()
+
+    assert energy(8.0, "classic") == pytest.approx(energy(4.0, "classic"), rel=0.02)
+    near, far = energy(4.0, "antialiased"), energy(8.0, "antialiased")
+    assert far / near == pytest.approx(0.25, rel=0.05)
+    # nearly all of it in the centre pixel, at opacity · σ² / (σ² + eps2d) for σ = 0.05 px
+    assert near == pytest.approx(0.9 * 0.05**2 / (0.05**2 + 0.1), rel=0.05)
+
+
+def test_unknown_rasterize_mode_is_refused():
+    means, quats, scales, opacities = make_scene(3, 0, dtype=torch.float32)
+    viewmats, Ks = cameras(1, dtype=torch.float32)
+    with pytest.raises(ValueError, match="rasterize_mode"):
+        render(means, quats, scales, opacities, torch.ones(3, 3), viewmats, Ks, W, H, rasterize_mode="mip")
 
 
 def test_no_background_and_dense_opaque_scene():

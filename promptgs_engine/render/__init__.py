@@ -12,10 +12,11 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from .projection import EPS2D, camera_centers, project_gaussians
+from .projection import EPS2D, camera_centers, filter_compensation, project_gaussians
 from .sh import sh_to_color
 
 RENDER_MODES = ("RGB", "RGB+ED")
+RASTERIZE_MODES = ("classic", "antialiased")
 BACKENDS = ("auto", "cpu", "cuda")
 
 
@@ -56,6 +57,7 @@ def render(
     far_plane: float = 1e10,
     backend: str = "auto",
     eps2d: float = EPS2D,
+    rasterize_mode: str = "classic",
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Render N Gaussians into C pinhole cameras.
 
@@ -66,6 +68,9 @@ def render(
         render_mode "RGB" or "RGB+ED" (expected depth appended as the last channel).
         eps2d: the screen-space filter, a variance in pixels² added to every projected
         covariance (gsplat's ``eps2d``; 3DGS uses 0.3).
+        rasterize_mode: "classic" (3DGS) or "antialiased": opacities are scaled by
+        ``filter_compensation`` so the filter keeps each Gaussian's energy (gsplat's mode
+        of the same name).
 
     Returns:
         colors [C,H,W,D(+1)], alphas [C,H,W,1], and ``info`` with ``means2d`` [C,N,2]
@@ -76,19 +81,22 @@ def render(
     """
     if render_mode not in RENDER_MODES:
         raise ValueError(f"unknown render_mode {render_mode!r}; choose one of {', '.join(RENDER_MODES)}")
+    if rasterize_mode not in RASTERIZE_MODES:
+        raise ValueError(f"unknown rasterize_mode {rasterize_mode!r}; choose one of {', '.join(RASTERIZE_MODES)}")
     name = resolve_backend(backend, means.device)
     if name == "cuda":
         from .cuda import render_cuda
 
         return render_cuda(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-            sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane, eps2d,
+            sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane, eps2d, rasterize_mode,
         )
     from .cpu import rasterize_cpu
 
     return render_with(
         rasterize_cpu, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane, backend_name="cpu", eps2d=eps2d,
+        rasterize_mode=rasterize_mode,
     )
 
 
@@ -111,6 +119,7 @@ def render_with(
     far_plane: float,
     backend_name: str,
     eps2d: float = EPS2D,
+    rasterize_mode: str = "classic",
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Projection + colour evaluation (C++ for the cpu backend, torch otherwise), then ``rasterize``."""
     C = viewmats.shape[0]
@@ -143,6 +152,8 @@ def render_with(
         feats = torch.cat([feats, depths[..., None]], dim=-1)
         if backgrounds is not None:
             backgrounds = torch.cat([backgrounds, torch.zeros_like(backgrounds[:, :1])], dim=-1)
+    if rasterize_mode == "antialiased":
+        opacities = opacities[None] * filter_compensation(conics, eps2d)  # [C, N]
     out_colors, out_alphas = rasterize(
         means2d, conics, feats, opacities, depths, radii, width, height, backgrounds, absgrad
     )
@@ -167,4 +178,4 @@ def render_with(
     return out_colors, out_alphas, info
 
 
-__all__ = ["render", "render_with", "resolve_backend", "RenderBackendError", "RENDER_MODES", "BACKENDS"]
+__all__ = ["render", "render_with", "resolve_backend", "RenderBackendError", "RENDER_MODES", "RASTERIZE_MODES", "BACKENDS"]

@@ -28,7 +28,7 @@ def _f32(t: Tensor) -> Tensor:
 class RasterizeCPU(torch.autograd.Function):
     """Composite C images from projected Gaussians.
 
-    Inputs: means2d [C,N,2], conics [C,N,3], colors [C,N,D], opacities [N], depths [C,N]
+    Inputs: means2d [C,N,2], conics [C,N,3], colors [C,N,D], opacities [N] or [C,N], depths [C,N]
     (sort keys only, no gradient), radii [C,N,2] int32, backgrounds [C,D] or None.
     Outputs: colors [C,H,W,D], alphas [C,H,W,1].
     """
@@ -49,10 +49,12 @@ class RasterizeCPU(torch.autograd.Function):
     ) -> tuple[Tensor, Tensor]:
         C = 1 if means2d.dim() == 2 else means2d.shape[0]
         _C = _ext()
-        opac = _f32(opacities)
+        per_camera_opacity = opacities.dim() == 2
+        shared_opac = None if per_camera_opacity else _f32(opacities)
         out_colors, out_alphas, saved = [], [], []
         for c in range(C):
             bg = _f32(backgrounds[c]) if backgrounds is not None else torch.empty(0)
+            opac = _f32(opacities[c]) if per_camera_opacity else shared_opac
             args = (_f32(means2d[c]), _f32(conics[c]), _f32(colors[c]), opac, radii[c].contiguous(), bg)
             img, alpha, *bins = _C.rasterize_forward(
                 args[0], args[1], args[2], opac, _f32(depths[c]), args[4], bg, width, height
@@ -63,6 +65,7 @@ class RasterizeCPU(torch.autograd.Function):
         ctx.saved_per_camera = saved
         ctx.width, ctx.height, ctx.absgrad = width, height, absgrad
         ctx.has_bg = backgrounds is not None
+        ctx.per_camera_opacity = per_camera_opacity
         ctx.save_for_backward(means2d)
         return torch.stack(out_colors), torch.stack(out_alphas)
 
@@ -96,7 +99,7 @@ class RasterizeCPU(torch.autograd.Function):
             torch.stack(g_m).to(dtype),
             torch.stack(g_cn).to(dtype),
             torch.stack(g_col).to(dtype),
-            torch.stack(g_op).sum(0).to(dtype),
+            (torch.stack(g_op) if ctx.per_camera_opacity else torch.stack(g_op).sum(0)).to(dtype),
             None,
             None,
             grad_bg,

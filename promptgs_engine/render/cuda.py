@@ -26,6 +26,7 @@ def render_cuda(
     near_plane: float,
     far_plane: float,
     eps2d: float = EPS2D,
+    rasterize_mode: str = "classic",
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """gsplat.rasterization with the arguments the CPU backend mirrors."""
     from gsplat import rasterization
@@ -48,7 +49,7 @@ def render_cuda(
         backgrounds=backgrounds,
         render_mode=render_mode,
         absgrad=absgrad,
-        rasterize_mode="classic",
+        rasterize_mode=rasterize_mode,
     )
     info = dict(meta)
     info["backend"] = "cuda"

@@ -124,6 +124,26 @@ def project_gaussians(
     return means2d, conics, z, radii
 
 
+def filter_compensation(conics: Tensor, eps2d: float) -> Tensor:
+    """Opacity factor that keeps a Gaussian's screen-space energy through the filter.
+
+    ``sqrt(det Σ / det(Σ + eps2d·I))`` from the filtered ``conics`` [..., 3] (Mip-Splatting's
+    2D filter, gsplat's ``rasterize_mode="antialiased"``): a Gaussian smaller than a pixel
+    then covers the image in proportion to its projected area, as a real object does,
+    instead of drawing a blob of the filter's size at full opacity from every distance.
+    Differentiable; 0 where the unfiltered covariance is degenerate.
+    """
+    a, b, c = conics.unbind(-1)
+    det_inv = a * c - b * b  # 1 / det(Σ + eps2d·I)
+    det_inv_safe = torch.where(det_inv > 0, det_inv, torch.ones_like(det_inv))
+    c00 = c / det_inv_safe - eps2d
+    c11 = a / det_inv_safe - eps2d
+    c01 = -b / det_inv_safe
+    ratio = (c00 * c11 - c01 * c01) * det_inv_safe
+    ok = (det_inv > 0) & (ratio > 1e-12)
+    return torch.where(ok, torch.sqrt(torch.where(ok, ratio, torch.ones_like(ratio))), torch.zeros_like(ratio))
+
+
 def camera_centers(viewmats: Tensor) -> Tensor:
     """Camera centres in world space [C, 3] from world-to-camera matrices [C, 4, 4]."""
     R = viewmats[:, :3, :3]
@@ -131,4 +151,4 @@ def camera_centers(viewmats: Tensor) -> Tensor:
     return -(R.transpose(-1, -2) @ t[..., None])[..., 0]
 
 
-__all__ = ["project_gaussians", "quat_scale_to_covar", "camera_centers", "ALPHA_THRESHOLD", "EPS2D"]
+__all__ = ["project_gaussians", "quat_scale_to_covar", "camera_centers", "filter_compensation", "ALPHA_THRESHOLD", "EPS2D"]

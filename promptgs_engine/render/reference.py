@@ -83,7 +83,8 @@ def rasterize_reference_batch(
         raise NotImplementedError("the reference rasterizer does not compute absgrad")
     outs = [
         rasterize_reference(
-            means2d[c], conics[c], colors[c], opacities, depths[c], radii[c], width, height,
+            means2d[c], conics[c], colors[c], opacities[c] if opacities.dim() == 2 else opacities, depths[c], radii[c],
+            width, height,
             None if backgrounds is None else backgrounds[c],
         )
         for c in range(means2d.shape[0])
@@ -107,6 +108,7 @@ def render_reference(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     eps2d: float = EPS2D,
+    rasterize_mode: str = "classic",
 ) -> tuple[Tensor, Tensor, dict]:
     """``render()`` with the dense torch rasterizer (any dtype, autograd gradients)."""
     from . import render_with
@@ -114,4 +116,5 @@ def render_reference(
     return render_with(
         rasterize_reference_batch, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         sh_degree, backgrounds, render_mode, False, near_plane, far_plane, backend_name="reference", eps2d=eps2d,
+        rasterize_mode=rasterize_mode,
     )
