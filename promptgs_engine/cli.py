@@ -53,7 +53,7 @@ def _add_train(sub) -> None:
         "--antialiased", action=argparse.BooleanOptionalAction, default=None,
         help="scale each Gaussian's opacity so the screen filter keeps its energy (Mip-Splatting's 2D filter): "
         "objects smaller than a pixel stay consistent across distances and resolutions "
-        "(default on for promptgs with --prompts or --auto-prompts, off otherwise)",
+        "(default off: 3DGS's classic filter)",
     )
     p.add_argument("--snapshot-every", type=int, help="write a snapshot for the Blender add-on every N steps")
     p.add_argument("--checkpoint-every", type=int)

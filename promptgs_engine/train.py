@@ -463,7 +463,6 @@ def run_training(
     cfg.validate()
     # The run folder records the filter its renders use (evaluation renders with it too).
     cfg.screen_filter = cfg.effective_screen_filter
-    cfg.antialiased = cfg.rasterize_mode == "antialiased"
     scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     out.mkdir(parents=True, exist_ok=True)
     if overwrite and not resume:

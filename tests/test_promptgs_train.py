@@ -118,7 +118,7 @@ def test_screen_filter_per_step_and_in_evaluation(toy, tmp_path, monkeypatch):
 
 
 def test_antialiased_filter_in_training_and_evaluation(toy, tmp_path, monkeypatch):
-    """A run with drawn prompts renders every step (low-resolution ones too) and its
+    """An --antialiased run renders every step (low-resolution ones too) and its
     evaluation antialiased; cfg.json records it, and an old run folder reads as classic."""
     import promptgs_engine.evaluation as evaluation
     import promptgs_engine.train as train
@@ -138,7 +138,7 @@ def test_antialiased_filter_in_training_and_evaluation(toy, tmp_path, monkeypatc
     recording(train, "train")
     recording(evaluation, "eval")
     cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=20, strategy="promptgs",
-                      prompts=str(toy / "prompts_1.json"), checkpoint_every=0)
+                      prompts=str(toy / "prompts_1.json"), checkpoint_every=0, antialiased=True)
     run_training(cfg, quiet=True)
     assert json.loads((tmp_path / "run" / "cfg.json").read_text())["antialiased"] is True
     assert {m for w, m in used if w == "train"} == {"antialiased"}
@@ -155,13 +155,11 @@ def test_antialiased_settings(toy, tmp_path):
     def mode(**kw):
         return TrainConfig(dataset="d", out="o", **kw).rasterize_mode
 
-    assert mode(strategy="promptgs", prompts="p.json") == "antialiased"
-    assert mode(strategy="promptgs", auto_prompts=2) == "antialiased"
-    assert mode(strategy="promptgs", center_prompt=True) == "classic"
-    assert mode(strategy="3dgs") == "classic" and mode(strategy="absgs", prompts="p.json") == "classic"
-    assert mode(strategy="promptgs", prompts="p.json", antialiased=False) == "classic"
+    assert mode(strategy="promptgs", prompts="p.json") == "classic"
+    assert mode(strategy="3dgs") == "classic"
+    assert mode(strategy="promptgs", prompts="p.json", antialiased=True) == "antialiased"
     assert mode(strategy="3dgs", antialiased=True) == "antialiased"
-    args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "r"), "--no-antialiased"])
+    args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "r")])
     assert train_config_from_args(args).antialiased is False
     args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "r"), "--antialiased"])
     assert train_config_from_args(args).rasterize_mode == "antialiased"
