@@ -126,7 +126,7 @@ class TrainConfig:
         except (OSError, json.JSONDecodeError) as exc:
             raise PromptGSError(f"{path}: cannot read training settings ({exc})") from exc
         if isinstance(data, dict):
-            # Runs written before the setting existed rendered with 3DGS's filter.
+            # Runs written before the setting existed rendered with 3DGS's filter (and, with no
+            # `antialiased` key, the classic mode: the field's default).
             data.setdefault("screen_filter", BASELINE_SCREEN_FILTER)
-            data.setdefault("antialiased", False)
         return cls.from_json(data)

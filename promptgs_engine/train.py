@@ -116,7 +116,6 @@ class Trainer:
         self.rng = np.random.default_rng(cfg.seed)
         self.schedule = DefaultSchedule.for_iterations(cfg.iterations)
         self.screen_filter = cfg.effective_screen_filter
-        self.rasterize_mode = cfg.rasterize_mode
         points, colors = self.scene.points.float(), self.scene.point_colors.float()
         self.n_sky_points = 0
         if cfg.sky and points.shape[0]:
@@ -221,7 +220,7 @@ class Trainer:
             sh_degree=self.cfg.sh_degree if sh_degree is None else sh_degree,
             backend=self.backend,
             eps2d=self.screen_filter if screen_filter is None else screen_filter,
-            rasterize_mode=self.rasterize_mode,
+            rasterize_mode=self.cfg.rasterize_mode,
             **kwargs,
         )
 
