@@ -5,7 +5,10 @@
 // T before each Gaussian as T / (1 - alpha). Gradients are summed per Gaussian within a
 // tile (vector accumulators, see tile_kernels.inc), then added to a per-thread buffer
 // indexed by depth rank; the buffers are reduced (and mapped back to Gaussian order) at
-// the end, so no atomics are needed.
+// the end, so no atomics are needed. Tiles go to threads in a fixed round-robin order, so
+// each buffer adds the same tiles in the same order on every call: for a given number of
+// threads the gradients are bit-for-bit reproducible (a dynamic schedule made them differ
+// in the last bits between identical calls, and training runs of one seed diverge from that).
 #include <omp.h>
 
 #include <algorithm>
@@ -49,7 +52,7 @@ void rasterize_backward(const RasterInputs& in, const TileBins& bins, const floa
         std::vector<float> dcol(static_cast<size_t>(D) * kTilePixels);
         std::vector<float> buf(static_cast<size_t>(D) * kTilePixels);
         std::vector<float> vcol(static_cast<size_t>(D) * kTile);  // D * (lanes <= 16)
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(static, 1)
         for (int tile = 0; tile < n_tiles; ++tile) {
             const int start = bins.offsets[tile], end = bins.offsets[tile + 1];
             if (start == end) continue;
