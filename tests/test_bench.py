@@ -16,6 +16,7 @@ from promptgs_engine.bench.grid import (
     Grid,
     SceneSpec,
     enclosing_box,
+    grid_from_args,
     read_results,
     run_grid,
 )
@@ -175,6 +176,20 @@ def test_scene_spec_parsing(tmp_path: Path):
     assert SceneSpec.parse(str(tmp_path)).name == tmp_path.name
     cell = Cell(spec, "promptgs-center", "auto", 300, 2)
     assert cell.id == "tumbler/promptgs-center/auto/i300/s2" and cell.prompt == "center"
+
+
+def test_iterations_on_the_command_line_override_every_scene(tmp_path: Path):
+    """`--iterations` replaces the grid's iterations, also where a scene sets its own."""
+    (tmp_path / "grid.json").write_text(json.dumps({
+        "scenes": [{"name": "a", "path": ".", "iterations": [600]}, {"name": "b", "path": "."}],
+        "iterations": [300],
+    }))
+    args = cli.build_parser().parse_args(["bench", "--grid", str(tmp_path / "grid.json"), "--out", str(tmp_path / "o")])
+    assert {(c.scene.name, c.iterations) for c in grid_from_args(args).cells()} == {("a", 600), ("b", 300)}
+    args = cli.build_parser().parse_args(
+        ["bench", "--grid", str(tmp_path / "grid.json"), "--iterations", "1500", "--out", str(tmp_path / "o")]
+    )
+    assert {(c.scene.name, c.iterations) for c in grid_from_args(args).cells()} == {("a", 1500), ("b", 1500)}
 
 
 # -- the real thing, tiny ------------------------------------------------------------------

@@ -18,6 +18,7 @@ skipped with a note.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -355,7 +356,7 @@ def add_parser(sub) -> None:
     p.add_argument("--grid", type=Path, help="grid file (JSON); command-line options add to / override it")
     p.add_argument("--methods", nargs="+", choices=METHODS)
     p.add_argument("--budgets", nargs="+", help="maximum Gaussians per cell: numbers, 'auto', 'none' (default none)")
-    p.add_argument("--iterations", type=int, nargs="+")
+    p.add_argument("--iterations", type=int, nargs="+", help="training steps per cell, for every scene (overrides the grid file)")
     p.add_argument("--seeds", type=int, nargs="+")
     p.add_argument("--out", type=Path, required=True, help="bench folder: results.jsonl and runs/")
     p.add_argument("--report", action="store_true", help="write the report (charts, table, crop sheet) into OUT/report when done")
@@ -376,8 +377,9 @@ def grid_from_args(args) -> Grid:
         grid.methods = list(args.methods)
     if args.budgets:
         grid.budgets = [_budget_arg(b) for b in args.budgets]
-    if args.iterations:
+    if args.iterations:  # for every scene, including those whose grid entry sets its own
         grid.iterations = list(args.iterations)
+        grid.scenes = [dataclasses.replace(s, iterations=None) for s in grid.scenes]
     if args.seeds:
         grid.seeds = list(args.seeds)
     return grid
