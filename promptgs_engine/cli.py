@@ -132,6 +132,14 @@ def _add_render(sub) -> None:
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--camera", action="append", help="image name of a camera (repeatable)")
     which.add_argument("--all", action="store_true", help="every camera of the dataset")
+    which.add_argument(
+        "--camera-file", type=Path,
+        help="JSON cameras with any pose and intrinsics, in dataset coordinates (docs/interfaces.md)",
+    )
+    p.add_argument(
+        "--snapshot", type=Path,
+        help="render this snapshot .npz of a run still training instead of its point_cloud.ply (DC colour only)",
+    )
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_render)
@@ -140,7 +148,10 @@ def _add_render(sub) -> None:
 def cmd_render(args: argparse.Namespace) -> int:
     from .evaluation import render_run
 
-    paths = render_run(args.run, args.out, None if args.all else args.camera, quiet=args.quiet)
+    paths = render_run(
+        args.run, args.out, None if args.all else args.camera, quiet=args.quiet,
+        camera_file=args.camera_file, snapshot=args.snapshot,
+    )
     print(f"wrote {len(paths)} images to {args.out}")
     return 0
 

@@ -14,8 +14,9 @@ from PIL import Image
 from tqdm import tqdm
 
 from .config import BASELINE_SCREEN_FILTER, TrainConfig
-from .data import Camera, Scene, load_colmap_scene
+from .data import Camera, Scene, load_camera_file, load_colmap_scene
 from .errors import PromptGSError
+from .events import read_snapshot_params
 from .gaussians import load_ply, sh_degree_of
 from .data.images import load_image_tensor
 from .metrics import masked_psnr, object_recall, object_region_psnr, psnr, resize_mask, ssim
@@ -27,11 +28,16 @@ RENDERS = "renders"  # test-view renders, written when evaluate_run is asked to 
 NO_OBJECTS = "gt_nodrones"  # object-free ground truth beside object_masks/ (recall)
 
 
-def load_run(run_dir: Path) -> tuple[TrainConfig, torch.nn.ParameterDict]:
+def load_run(run_dir: Path, snapshot: Path | None = None) -> tuple[TrainConfig, torch.nn.ParameterDict]:
+    """A run's settings and Gaussians: its ``point_cloud.ply``, or a snapshot of it."""
     run_dir = Path(run_dir)
     if not (run_dir / "cfg.json").is_file():
         raise PromptGSError(f"{run_dir}: not a PromptGS run folder (no cfg.json)")
     cfg = TrainConfig.load(run_dir / "cfg.json")
+    if snapshot is not None:
+        return cfg, read_snapshot_params(snapshot)
+    if not (run_dir / "point_cloud.ply").is_file():
+        raise PromptGSError(f"{run_dir}: no point_cloud.ply yet (the run has not finished); a snapshot can be rendered")
     return cfg, load_ply(run_dir / "point_cloud.ply")
 
 
@@ -223,26 +229,38 @@ def evaluate_run(
     return metrics
 
 
-def render_run(run_dir: Path, out_dir: Path, camera_names: list[str] | None = None, quiet: bool = False) -> list[Path]:
-    """Render the named cameras (all when None) of a run's dataset to PNG files."""
-    cfg, params = load_run(run_dir)
-    scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
-    cameras = {c.name: c for c in scene.train_cameras + scene.test_cameras}
-    if camera_names is None:
-        names = sorted(cameras)
+def render_run(
+    run_dir: Path,
+    out_dir: Path,
+    camera_names: list[str] | None = None,
+    quiet: bool = False,
+    camera_file: Path | None = None,
+    snapshot: Path | None = None,
+) -> list[Path]:
+    """Render cameras of a run to PNG files: the named dataset cameras (all when None) at
+    the run's resolution, or the cameras of a camera file at their own size.
+
+    The Gaussians are the run's ``point_cloud.ply``, or a snapshot of a run that is still
+    training (``snapshot``; DC colour only). The run's screen filter and rasterize mode apply.
+    """
+    cfg, params = load_run(run_dir, snapshot)
+    if camera_file is not None:
+        views = load_camera_file(camera_file)
     else:
+        scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
+        cameras = {c.name: c for c in scene.train_cameras + scene.test_cameras}
+        if camera_names is None:
+            camera_names = sorted(cameras)
         unknown = [n for n in camera_names if n not in cameras]
         if unknown:
             raise PromptGSError(f"no camera named {unknown[0]!r} in {cfg.dataset}")
-        names = camera_names
+        views = [cameras[name].downscaled(cfg.downscale) for name in camera_names]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
-    for name in tqdm(names, desc="render", disable=quiet, unit="view"):
-        img = render_view(
-            params, cameras[name].downscaled(cfg.downscale), cfg.backend, cfg.effective_screen_filter, cfg.rasterize_mode
-        )
-        path = out_dir / (Path(name).stem + ".png")
+    for camera in tqdm(views, desc="render", disable=quiet, unit="view"):
+        img = render_view(params, camera, cfg.backend, cfg.effective_screen_filter, cfg.rasterize_mode)
+        path = out_dir / (Path(camera.name).stem + ".png")
         save_png(img, path)
         written.append(path)
     return written

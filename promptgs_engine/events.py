@@ -17,7 +17,8 @@ from typing import IO, Any
 import numpy as np
 import torch
 
-from .gaussians import sh_to_rgb
+from .errors import PromptGSError
+from .gaussians import make_params, rgb_to_sh, sh_to_rgb
 
 
 def _clean(value: Any) -> Any:
@@ -79,3 +80,33 @@ def write_snapshot(
     tmp = path.with_name(path.stem + ".tmp.npz")
     np.savez(tmp, **out)
     tmp.replace(path)
+
+
+SNAPSHOT_KEYS = ("means", "opacity", "scale", "rotation", "color")
+
+
+def read_snapshot_params(path: Path) -> torch.nn.ParameterDict:
+    """Gaussians to render from a snapshot file: positions, shapes, opacities, and the
+    DC colour only (a snapshot keeps no view-dependent SH terms, so it renders with
+    degree 0). One-line :class:`PromptGSError` for a missing or incomplete file."""
+    path = Path(path)
+    try:
+        with np.load(path) as npz:
+            missing = [key for key in SNAPSHOT_KEYS if key not in npz.files]
+            if missing:
+                raise PromptGSError(f"{path}: not a PromptGS snapshot (no {', '.join(missing)})")
+            arrays = {key: torch.from_numpy(np.asarray(npz[key], np.float32)) for key in SNAPSHOT_KEYS}
+    except FileNotFoundError:
+        raise PromptGSError(f"{path}: no such snapshot file") from None
+    except (OSError, ValueError) as exc:
+        raise PromptGSError(f"{path}: cannot read snapshot ({exc})") from None
+    n = arrays["means"].shape[0]
+    opacity = arrays["opacity"].clamp(1e-6, 1 - 1e-6)
+    return make_params(
+        means=arrays["means"],
+        scales=torch.log(arrays["scale"].clamp_min(1e-12)),
+        quats=arrays["rotation"],
+        opacities=torch.log(opacity / (1 - opacity)),
+        sh0=rgb_to_sh(arrays["color"]).reshape(n, 1, 3),
+        shN=torch.zeros(n, 0, 3),
+    )
