@@ -116,6 +116,44 @@ def blender_camera_settings(width: int, height: int, fx: float, fy: float, cx: f
     }
 
 
+def blender_camera_intrinsics(width: int, height: int, lens: float, sensor_width: float, sensor_height: float,
+                              sensor_fit: str = "AUTO", shift_x: float = 0.0, shift_y: float = 0.0,
+                              pixel_aspect: tuple[float, float] = (1.0, 1.0)) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) in COLMAP's pixel convention of a Blender perspective camera
+    rendering ``width`` × ``height`` pixels: the inverse of :func:`blender_camera_settings`
+    for any sensor fit, as Blender computes its view plane.
+
+    The sensor size along the fitted axis is ``sensor_height`` only for a VERTICAL fit;
+    AUTO fits the longer side of the frame (in pixel-aspect units) but measures it with
+    ``sensor_width``. Shifts are in units of that side.
+    """
+    xasp, yasp = pixel_aspect
+    ycor = yasp / xasp
+    fit = sensor_fit
+    if fit == "AUTO":
+        fit = "HORIZONTAL" if xasp * width >= yasp * height else "VERTICAL"
+    sensor = sensor_height if sensor_fit == "VERTICAL" else sensor_width
+    side = width if fit == "HORIZONTAL" else ycor * height  # the fitted side, in x-pixel units
+    fx = lens * side / sensor
+    fy = fx / ycor
+    cx = width / 2.0 - shift_x * side
+    cy = height / 2.0 + shift_y * side / ycor
+    return fx, fy, cx, cy
+
+
+def blender_camera_to_colmap(camera_to_dataset) -> np.ndarray:
+    """COLMAP's world-to-camera matrix of a Blender camera whose matrix in dataset
+    coordinates is ``camera_to_dataset`` (the inverse of :func:`colmap_camera_to_blender`).
+    Scale in the matrix (a scaled camera object) is removed."""
+    m = np.asarray(camera_to_dataset, np.float64)
+    axes = m[:3, :3] / np.linalg.norm(m[:3, :3], axis=0)
+    rot = (axes @ COLMAP_TO_BLENDER_CAMERA).T  # COLMAP's R: rows are the camera axes in the world
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = -rot @ m[:3, 3]
+    return out
+
+
 def prompt_box(box_to_dataset, display_size: float = 1.0) -> dict:
     """The prompt-file box of a CUBE empty, from its matrix in dataset coordinates.
 

@@ -1,8 +1,10 @@
 """Points objects carrying per-point attributes, drawn with a geometry-nodes modifier.
 
-A points-only mesh keeps the data (``foreach_set`` of numpy arrays, no per-point Python)
-and can change its point count from one snapshot to the next while the object stays the
-same. The "PromptGS Points" node group draws the points either as point-cloud points
+From Blender 5.1 on (``PointCloud.resize``) the points are a point-cloud object; on 4.2 to
+5.0, whose point clouds cannot be resized from Python, a points-only mesh. Either keeps
+the data (``foreach_set`` of numpy arrays, no per-point Python) and can change its point
+count from one snapshot to the next while the object stays the same. The "PromptGS
+Points" node group draws the points either as point-cloud points
 (cheap: a million in well under a second) or as small ico-spheres (about 12 s per million
 to evaluate, so only for small sets). Colour: the ``display_color`` attribute (the chosen
 attribute through a colour map, or the RGB colour) read by the "PromptGS Display"
@@ -20,7 +22,7 @@ import numpy as np
 
 N_BINS = 16
 NODE_GROUP = "PromptGS Points"
-NODE_GROUP_VERSION = 2  # bump when the group changes; older groups are rebuilt
+NODE_GROUP_VERSION = 3  # bump when the group changes; older groups are rebuilt
 DISPLAY_MATERIAL = "PromptGS Display"
 SPHERES_UP_TO = 50_000  # "auto" style: spheres up to this many points, plain points above
 # colour ramps (control points, linear RGB): 0 dark blue → green → yellow (Gaussians),
@@ -76,8 +78,25 @@ def display_material() -> bpy.types.Material:
     return mat
 
 
+def socket(sockets, name: str):
+    """The shown socket called ``name`` among a node's inputs or outputs.
+
+    Sockets are found by name, never by position: a node lists the sockets of every data
+    type up to Blender 5.1 (hidden ones included), and only those of its current type
+    from 5.2 on.
+    """
+    for item in sockets:
+        if item.name == name and item.enabled:
+            return item
+    raise KeyError(f"no shown socket named {name!r}")
+
+
 def node_group() -> bpy.types.NodeTree:
-    """The shared geometry-nodes group (inputs: Geometry, Radius, Spheres)."""
+    """The shared geometry-nodes group (inputs: Geometry, Radius, Spheres, Min Value).
+
+    The geometry is a points-only mesh or a point cloud; both end as points of the
+    chosen radius, or as ico-spheres on them.
+    """
     group = bpy.data.node_groups.get(NODE_GROUP)
     if group is not None:
         if group.get("promptgs_version") == NODE_GROUP_VERSION:
@@ -100,58 +119,67 @@ def node_group() -> bpy.types.NodeTree:
     # hide points whose colour-map value (0..1) is below "Min Value"
     value = nodes.new("GeometryNodeInputNamedAttribute")
     value.data_type = "FLOAT"
-    value.inputs["Name"].default_value = "display_value"
+    socket(value.inputs, "Name").default_value = "display_value"
     below = nodes.new("FunctionNodeCompare")
     below.data_type, below.operation = "FLOAT", "LESS_THAN"
-    links.new(value.outputs["Attribute"], below.inputs[0])
-    links.new(g_in.outputs["Min Value"], below.inputs[1])
+    links.new(socket(value.outputs, "Attribute"), socket(below.inputs, "A"))
+    links.new(socket(g_in.outputs, "Min Value"), socket(below.inputs, "B"))
     delete = nodes.new("GeometryNodeDeleteGeometry")
     delete.domain = "POINT"
-    links.new(g_in.outputs["Geometry"], delete.inputs["Geometry"])
-    links.new(below.outputs["Result"], delete.inputs["Selection"])
-    source = delete.outputs["Geometry"]
+    links.new(socket(g_in.outputs, "Geometry"), socket(delete.inputs, "Geometry"))
+    links.new(socket(below.outputs, "Result"), socket(delete.inputs, "Selection"))
 
+    # points of the chosen radius, from a mesh's vertices or a point cloud's points
+    parts = nodes.new("GeometryNodeSeparateComponents")
+    links.new(socket(delete.outputs, "Geometry"), socket(parts.inputs, "Geometry"))
     to_points = nodes.new("GeometryNodeMeshToPoints")
-    links.new(source, to_points.inputs["Mesh"])
-    links.new(g_in.outputs["Radius"], to_points.inputs["Radius"])
+    links.new(socket(parts.outputs, "Mesh"), socket(to_points.inputs, "Mesh"))
+    links.new(socket(g_in.outputs, "Radius"), socket(to_points.inputs, "Radius"))
+    cloud = nodes.new("GeometryNodeSetPointRadius")
+    links.new(socket(parts.outputs, "Point Cloud"), socket(cloud.inputs, "Points"))
+    links.new(socket(g_in.outputs, "Radius"), socket(cloud.inputs, "Radius"))
+    join = nodes.new("GeometryNodeJoinGeometry")
+    links.new(socket(cloud.outputs, "Points"), socket(join.inputs, "Geometry"))
+    links.new(socket(to_points.outputs, "Points"), socket(join.inputs, "Geometry"))
+    points = socket(join.outputs, "Geometry")
+
     ico = nodes.new("GeometryNodeMeshIcoSphere")
-    ico.inputs["Subdivisions"].default_value = 1
-    links.new(g_in.outputs["Radius"], ico.inputs["Radius"])
+    socket(ico.inputs, "Subdivisions").default_value = 1
+    links.new(socket(g_in.outputs, "Radius"), socket(ico.inputs, "Radius"))
     instance = nodes.new("GeometryNodeInstanceOnPoints")
-    links.new(source, instance.inputs["Points"])
-    links.new(ico.outputs["Mesh"], instance.inputs["Instance"])
+    links.new(points, socket(instance.inputs, "Points"))
+    links.new(socket(ico.outputs, "Mesh"), socket(instance.inputs, "Instance"))
     realize = nodes.new("GeometryNodeRealizeInstances")
-    links.new(instance.outputs["Instances"], realize.inputs["Geometry"])
+    links.new(socket(instance.outputs, "Instances"), socket(realize.inputs, "Geometry"))
 
     # plain points: one material reading display_color
     points_mat = nodes.new("GeometryNodeSetMaterial")
-    points_mat.inputs["Material"].default_value = display_material()
-    links.new(to_points.outputs["Points"], points_mat.inputs["Geometry"])
+    socket(points_mat.inputs, "Material").default_value = display_material()
+    links.new(points, socket(points_mat.inputs, "Geometry"))
     # spheres: the same, then a colour-map material per display_bin (Workbench)
     spheres_mat = nodes.new("GeometryNodeSetMaterial")
-    spheres_mat.inputs["Material"].default_value = display_material()
-    links.new(realize.outputs["Geometry"], spheres_mat.inputs["Geometry"])
-    geometry = spheres_mat.outputs["Geometry"]
+    socket(spheres_mat.inputs, "Material").default_value = display_material()
+    links.new(socket(realize.outputs, "Geometry"), socket(spheres_mat.inputs, "Geometry"))
+    geometry = socket(spheres_mat.outputs, "Geometry")
     bins = nodes.new("GeometryNodeInputNamedAttribute")
     bins.data_type = "INT"
-    bins.inputs["Name"].default_value = "display_bin"
+    socket(bins.inputs, "Name").default_value = "display_bin"
     for k in range(N_BINS * len(PALETTES)):
         equal = nodes.new("FunctionNodeCompare")
         equal.data_type, equal.operation = "INT", "EQUAL"
-        links.new(bins.outputs["Attribute"], equal.inputs[2])
-        equal.inputs[3].default_value = k
+        links.new(socket(bins.outputs, "Attribute"), socket(equal.inputs, "A"))
+        socket(equal.inputs, "B").default_value = k
         set_mat = nodes.new("GeometryNodeSetMaterial")
-        set_mat.inputs["Material"].default_value = bin_material(k)
-        links.new(geometry, set_mat.inputs["Geometry"])
-        links.new(equal.outputs["Result"], set_mat.inputs["Selection"])
-        geometry = set_mat.outputs["Geometry"]
+        socket(set_mat.inputs, "Material").default_value = bin_material(k)
+        links.new(geometry, socket(set_mat.inputs, "Geometry"))
+        links.new(socket(equal.outputs, "Result"), socket(set_mat.inputs, "Selection"))
+        geometry = socket(set_mat.outputs, "Geometry")
     switch = nodes.new("GeometryNodeSwitch")
     switch.input_type = "GEOMETRY"
-    links.new(g_in.outputs["Spheres"], switch.inputs["Switch"])
-    links.new(points_mat.outputs["Geometry"], switch.inputs["False"])
-    links.new(geometry, switch.inputs["True"])
-    geometry = switch.outputs[0]
-    links.new(geometry, g_out.inputs["Geometry"])
+    links.new(socket(g_in.outputs, "Spheres"), socket(switch.inputs, "Switch"))
+    links.new(socket(points_mat.outputs, "Geometry"), socket(switch.inputs, "False"))
+    links.new(geometry, socket(switch.inputs, "True"))
+    links.new(switch.outputs[0], socket(g_out.inputs, "Geometry"))
     return group
 
 
@@ -160,6 +188,23 @@ def _socket_id(group: bpy.types.NodeTree, name: str) -> str:
         if getattr(item, "in_out", None) == "INPUT" and item.name == name:
             return item.identifier
     raise KeyError(name)
+
+
+def modifier_input(mod: bpy.types.Modifier, name: str):
+    """The value of a geometry-nodes modifier's input, by the group socket's name."""
+    identifier = _socket_id(mod.node_group, name)
+    if hasattr(mod, "properties"):  # Blender 5.2+: inputs are no longer ID properties
+        return getattr(mod.properties.inputs, identifier).value
+    return mod[identifier]
+
+
+def set_modifier_input(mod: bpy.types.Modifier, name: str, value) -> None:
+    """Set a geometry-nodes modifier's input, by the group socket's name, on every line."""
+    identifier = _socket_id(mod.node_group, name)
+    if hasattr(mod, "properties"):
+        getattr(mod.properties.inputs, identifier).value = value
+    else:
+        mod[identifier] = value
 
 
 def use_spheres(style: str, n: int) -> bool:
@@ -174,21 +219,39 @@ def set_style(obj: bpy.types.Object, radius: float | None = None, spheres: bool 
     if mod is None:
         return
     if min_value is not None:
-        mod[_socket_id(mod.node_group, "Min Value")] = float(min_value)
+        set_modifier_input(mod, "Min Value", float(min_value))
     if radius is not None:
-        mod[_socket_id(mod.node_group, "Radius")] = float(radius)
+        set_modifier_input(mod, "Radius", float(radius))
     if spheres is not None:
-        mod[_socket_id(mod.node_group, "Spheres")] = bool(spheres)
+        set_modifier_input(mod, "Spheres", bool(spheres))
     obj.update_tag()
 
 
+POINTS_TYPES = ("MESH", "POINTCLOUD")
+
+
+def point_clouds_supported() -> bool:
+    """Whether this Blender can size a point cloud from Python (5.1+)."""
+    return "resize" in bpy.types.PointCloud.bl_rna.functions
+
+
+def is_points_object(obj: bpy.types.Object | None) -> bool:
+    return obj is not None and obj.type in POINTS_TYPES
+
+
 def points_object(name: str, collection: bpy.types.Collection, parent: bpy.types.Object | None = None,
-                  radius: float = 0.01, spheres: bool = True) -> bpy.types.Object:
-    """The named points object, created on first use (its identity survives updates)."""
+                  radius: float = 0.01, spheres: bool = True, editable: bool = False) -> bpy.types.Object:
+    """The named points object, created on first use (its identity survives updates).
+
+    A point cloud where Blender can resize one from Python (5.1+), else a points-only mesh;
+    ``editable`` asks for a mesh on every line (points a user selects in Edit Mode). An
+    object of the other kind, from a file saved with another line, is kept and used.
+    """
     obj = bpy.data.objects.get(name)
-    if obj is None or obj.type != "MESH":
-        mesh = bpy.data.meshes.new(name)
-        obj = bpy.data.objects.new(name, mesh)
+    if not is_points_object(obj):
+        cloud = point_clouds_supported() and not editable
+        data = bpy.data.pointclouds.new(name) if cloud else bpy.data.meshes.new(name)
+        obj = bpy.data.objects.new(name, data)
         mod = obj.modifiers.new("PromptGS Display", "NODES")
         mod.node_group = node_group()
         set_style(obj, radius, spheres)
@@ -201,6 +264,11 @@ def points_object(name: str, collection: bpy.types.Collection, parent: bpy.types
     return obj
 
 
+def point_count(obj: bpy.types.Object) -> int:
+    """Points of a points object (mesh vertices or point-cloud points)."""
+    return len(obj.data.points) if obj.type == "POINTCLOUD" else len(obj.data.vertices)
+
+
 def _attribute_kind(array: np.ndarray, name: str) -> tuple[str, str, int]:
     width = 1 if array.ndim == 1 else array.shape[1]
     if name == "color" or name == "display_color":
@@ -211,43 +279,64 @@ def _attribute_kind(array: np.ndarray, name: str) -> tuple[str, str, int]:
             4: ("QUATERNION", "value", 4)}[width]
 
 
+def _resize(obj: bpy.types.Object, n: int) -> None:
+    """Give a points object ``n`` points (their values are set next).
+
+    A point cloud gets a new datablock of that size: Blender 5.1.2 corrupts memory when a
+    point cloud that already has points is resized in place. The object stays the same.
+    """
+    if obj.type == "POINTCLOUD":
+        old = obj.data
+        name = old.name
+        cloud = bpy.data.pointclouds.new(name)
+        cloud.resize(n)
+        obj.data = cloud
+        if old.users == 0:
+            bpy.data.pointclouds.remove(old)
+            cloud.name = name
+    else:
+        obj.data.clear_geometry()
+        obj.data.vertices.add(n)
+
+
+def _data_updated(obj: bpy.types.Object) -> None:
+    if obj.type == "POINTCLOUD":
+        obj.data.update_tag()
+    else:
+        obj.data.update()
+
+
 def set_points(obj: bpy.types.Object, positions: np.ndarray | None, attributes: dict[str, np.ndarray]) -> None:
     """Replace the points (unless ``positions`` is None) and set attributes, in place."""
-    mesh = obj.data
     if positions is None:
-        n = len(mesh.vertices)
+        n = point_count(obj)
     else:
         positions = np.ascontiguousarray(positions, np.float32).reshape(-1, 3)
         n = len(positions)
-        if len(mesh.vertices) != n:
-            mesh.clear_geometry()
-            mesh.vertices.add(n)
-        mesh.vertices.foreach_set("co", positions.ravel())
+        if point_count(obj) != n:
+            _resize(obj, n)
+        obj.data.attributes["position"].data.foreach_set("vector", positions.ravel())
+    data = obj.data
     for name, array in attributes.items():
         array = np.asarray(array)
         data_type, prop, width = _attribute_kind(array, name)
         if data_type == "FLOAT_COLOR" and array.ndim == 2 and array.shape[1] == 3:
             array = np.concatenate([array, np.ones((n, 1), array.dtype)], axis=1)
-        attr = mesh.attributes.get(name)
+        attr = data.attributes.get(name)
         if attr is not None and (attr.data_type != data_type or attr.domain != "POINT"):
-            mesh.attributes.remove(attr)
+            data.attributes.remove(attr)
             attr = None
         if attr is None:
-            attr = mesh.attributes.new(name, data_type, "POINT")
+            attr = data.attributes.new(name, data_type, "POINT")
         dtype = np.int32 if data_type == "INT" else np.float32
         attr.data.foreach_set(prop, np.ascontiguousarray(array, dtype).reshape(n * width))
-    mesh.update()
+    _data_updated(obj)
 
 
 def get_attribute(obj: bpy.types.Object, name: str) -> np.ndarray:
     """A point attribute as a numpy array ([N] or [N, width])."""
-    mesh = obj.data
-    attr = mesh.attributes[name]
-    n = len(mesh.vertices)
-    if name == "position":
-        out = np.empty(n * 3, np.float32)
-        mesh.vertices.foreach_get("co", out)
-        return out.reshape(n, 3)
+    attr = obj.data.attributes[name]
+    n = point_count(obj)
     width = {"FLOAT": 1, "INT": 1, "FLOAT_VECTOR": 3, "QUATERNION": 4, "FLOAT_COLOR": 4}[attr.data_type]
     prop = {"FLOAT_VECTOR": "vector", "FLOAT_COLOR": "color"}.get(attr.data_type, "value")
     out = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
@@ -257,11 +346,11 @@ def get_attribute(obj: bpy.types.Object, name: str) -> np.ndarray:
 
 def color_by(obj: bpy.types.Object, name: str, palette: int = 0) -> None:
     """Colour the points by one attribute: colour-map bins, or RGB for ``color``."""
-    mesh = obj.data
-    n = len(mesh.vertices)
+    attributes = obj.data.attributes
+    n = point_count(obj)
     note = ""
     t = np.ones(n)
-    if name == "color" or name not in mesh.attributes:
+    if name == "color" or name not in attributes:
         bins = np.full(n, -1, np.int32)
         note = "" if name == "color" else f"no '{name}' attribute: RGB colours"
     else:
@@ -276,24 +365,16 @@ def color_by(obj: bpy.types.Object, name: str, palette: int = 0) -> None:
         elif n:
             note = f"'{name}': {lo:.3g} … {hi:.3g} (2–98 %)"
     obj["promptgs_color_note"] = note
-    if name == "color" and "color" in mesh.attributes:
+    if name == "color" and "color" in attributes:
         rgb = get_attribute(obj, "color")[:, :3]
-    elif name == "color" or name not in mesh.attributes:
+    elif name == "color" or name not in attributes:
         rgb = np.full((n, 3), 0.6)
     else:
         rgb = colormap((bins + 0.5) / N_BINS, palette)
         bins = bins + palette * N_BINS
-    set_points(obj, None, {"display_color": rgb, "display_value": np.clip(t, 0.0, 1.0).astype(np.float32)})
-    set_points_attribute(obj, "display_bin", bins)
+    set_points(obj, None, {"display_color": rgb, "display_value": np.clip(t, 0.0, 1.0).astype(np.float32),
+                           "display_bin": bins})
     obj["promptgs_color_by"] = name
-
-
-def set_points_attribute(obj: bpy.types.Object, name: str, values: np.ndarray) -> None:
-    mesh = obj.data
-    data_type, prop, width = _attribute_kind(np.asarray(values), name)
-    attr = mesh.attributes.get(name) or mesh.attributes.new(name, data_type, "POINT")
-    attr.data.foreach_set(prop, np.ascontiguousarray(values).ravel())
-    mesh.update()
 
 
 def grid_step(centers: np.ndarray) -> float:

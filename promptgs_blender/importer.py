@@ -110,7 +110,7 @@ def import_colmap(context, dataset: str, images: str = "images", backgrounds: bo
     if len(model.points):
         points = display.points_object(SPARSE_NAME + f" {dataset_path.name}", collection, root,
                                        radius=_point_radius(model.points),
-                                       spheres=display.use_spheres("AUTO", len(model.points)))
+                                       spheres=display.use_spheres("AUTO", len(model.points)), editable=True)
         display.set_points(points, model.points, {
             "color": model.colors.astype(np.float32) / 255.0,
             "error": model.errors.astype(np.float32),

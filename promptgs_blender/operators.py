@@ -8,7 +8,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 from mathutils import Vector
 
-from . import colmap, importer, plyio, prompts, training
+from . import colmap, display, importer, plyio, prompts, training
 from .props import prefs
 from .trainer import find_python, probe
 
@@ -192,7 +192,7 @@ class PROMPTGS_OT_load_result(bpy.types.Operator, ImportHelper):
         except plyio.PlyError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        self.report({"INFO"}, f"Loaded {len(obj.data.vertices)} Gaussians")
+        self.report({"INFO"}, f"Loaded {display.point_count(obj)} Gaussians")
         return {"FINISHED"}
 
 
@@ -249,6 +249,22 @@ class PROMPTGS_OT_generate_dataset(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class PROMPTGS_OT_render_preview(bpy.types.Operator):
+    """Render the trained Gaussians from the active camera with the trainer's rasterizer (in the background)"""
+
+    bl_idname = "promptgs.render_preview"
+    bl_label = "Render Preview"
+
+    def execute(self, context):
+        try:
+            training.start_preview(context)
+        except training.UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, context.window_manager.promptgs_run.preview_message)
+        return {"FINISHED"}
+
+
 def menu_import(self, context):
     self.layout.operator(PROMPTGS_OT_import_colmap.bl_idname, text="PromptGS COLMAP Dataset")
 
@@ -257,6 +273,7 @@ CLASSES = (
     PROMPTGS_OT_import_colmap, PROMPTGS_OT_use_camera, PROMPTGS_OT_add_prompt, PROMPTGS_OT_select_prompt,
     PROMPTGS_OT_remove_prompt, PROMPTGS_OT_train, PROMPTGS_OT_cancel, PROMPTGS_OT_load_result,
     PROMPTGS_OT_find_trainer, PROMPTGS_OT_test_trainer, PROMPTGS_OT_generate_dataset,
+    PROMPTGS_OT_render_preview,
 )
 
 

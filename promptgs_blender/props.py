@@ -56,7 +56,7 @@ def _apply_preset(self, context):
 def _recolor(self, context):
     from . import display
     obj = bpy.data.objects.get("PromptGS Gaussians")
-    if obj is not None and obj.type == "MESH":
+    if display.is_points_object(obj):
         display.color_by(obj, context.scene.promptgs.color_by)
 
 
@@ -65,13 +65,13 @@ def _restyle(self, context):
     from . import training
     settings = context.scene.promptgs
     obj = bpy.data.objects.get(training.GAUSSIANS)
-    if obj is not None and obj.type == "MESH":
+    if display.is_points_object(obj):
         display.set_style(obj, radius=settings.point_radius,
-                          spheres=display.use_spheres(settings.display_style, len(obj.data.vertices)))
+                          spheres=display.use_spheres(settings.display_style, display.point_count(obj)))
     obj = bpy.data.objects.get(training.LOSS_FIELD)
-    if obj is not None and obj.type == "MESH":
+    if display.is_points_object(obj):
         display.set_style(obj, radius=training.field_radius(obj, settings), min_value=settings.field_cutoff,
-                          spheres=display.use_spheres(settings.display_style, len(obj.data.vertices)))
+                          spheres=display.use_spheres(settings.display_style, display.point_count(obj)))
 
 
 class PromptGSSettings(bpy.types.PropertyGroup):
@@ -114,6 +114,9 @@ class PromptGSSettings(bpy.types.PropertyGroup):
         ("small", "Small", "A small dataset (minutes to render on a CPU)"),
         ("paper", "Paper", "The full-size dataset (long)")])
     dataset_out: StringProperty(name="Output", subtype="DIR_PATH", default="")
+    preview_run: StringProperty(
+        name="Run", subtype="DIR_PATH", default="",
+        description="Run folder to preview (empty: the current or last training run)")
 
 
 class PromptGSRunState(bpy.types.PropertyGroup):
@@ -144,6 +147,9 @@ class PromptGSRunState(bpy.types.PropertyGroup):
         (s, s.title(), "") for s in ("IDLE", "RUNNING", "DONE", "ERROR")])
     dataset_message: StringProperty()
     dataset_out: StringProperty()
+    preview_status: EnumProperty(name="Preview job", default="IDLE", items=[
+        (s, s.title(), "") for s in ("IDLE", "RUNNING", "DONE", "ERROR")])
+    preview_message: StringProperty()
 
 
 CLASSES = (PromptGSPreferences, PromptGSSettings, PromptGSRunState)

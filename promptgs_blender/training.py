@@ -16,7 +16,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from . import colmap, display, importer, plyio, prompts
+from . import colmap, display, importer, plyio, preview, prompts
 from .props import prefs
 from .trainer import TrainerError, TrainerRun, check_python, engine_command, find_python, reduce_event
 
@@ -211,6 +211,7 @@ def drain_and_apply(context=None) -> bool:
             _dataset_job = None
         else:
             busy = True
+    busy = preview.drain(context) or busy
     _redraw(context)
     return busy
 
@@ -285,7 +286,7 @@ def load_result(context, path: Path, keep_scores: bool = False) -> bpy.types.Obj
     """Show a standard 3DGS PLY as the Gaussians object (score/error kept when counts match)."""
     data = plyio.read_gaussians(path)
     obj = bpy.data.objects.get(GAUSSIANS)
-    if keep_scores and obj is not None and len(obj.data.vertices) == len(data["means"]):
+    if keep_scores and display.is_points_object(obj) and display.point_count(obj) == len(data["means"]):
         for key in ("score", "error"):
             if key in obj.data.attributes:
                 data[key] = display.get_attribute(obj, key)
@@ -318,6 +319,23 @@ def start_dataset_job(context, out: Path, preset: str, seed: int) -> TrainerRun:
     return run
 
 
+def start_preview(context) -> preview.PreviewJob:
+    """*Render Preview* of the chosen run (default: the current or last training run)."""
+    settings, state = context.scene.promptgs, context.window_manager.promptgs_run
+    folder = bpy.path.abspath(settings.preview_run) if settings.preview_run else state.out_dir
+    if not folder:
+        raise UserError("No run to preview: train first, or choose a run folder")
+    last_snapshot = state.last_snapshot if folder == state.out_dir else ""
+    try:
+        job = preview.start(context, trainer_python(context), Path(folder), last_snapshot)
+    except (preview.PreviewError, OSError) as exc:
+        state.preview_status, state.preview_message = "ERROR", str(exc)
+        raise UserError(str(exc)) from None
+    if not bpy.app.background and not bpy.app.timers.is_registered(_timer):
+        bpy.app.timers.register(_timer, first_interval=0.25)
+    return job
+
+
 def stop_all(*_args) -> None:
     """Stop running jobs (Blender quits, another file loads, the add-on is disabled)."""
     global _train, _dataset_job
@@ -325,6 +343,7 @@ def stop_all(*_args) -> None:
         if run is not None and run.running:
             run.cancel(timeout=10.0, block=True)
     _train = _dataset_job = None
+    preview.stop()
 
 
 @bpy.app.handlers.persistent

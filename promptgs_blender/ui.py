@@ -115,6 +115,25 @@ class PROMPTGS_PT_train(PromptGSPanel, bpy.types.Panel):
             layout.operator("promptgs.load_result", icon="IMPORT")
 
 
+class PROMPTGS_PT_preview(PromptGSPanel, bpy.types.Panel):
+    bl_label = "Preview"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.promptgs
+        state = context.window_manager.promptgs_run
+        layout.prop(context.scene, "camera")
+        layout.prop(settings, "preview_run")
+        if not settings.preview_run and state.out_dir:
+            layout.label(text=f"Run: {state.out_dir}", icon="FILE_FOLDER")
+        row = layout.row()
+        row.enabled = state.preview_status != "RUNNING"
+        row.operator("promptgs.render_preview", icon="RENDER_STILL")
+        if state.preview_status != "IDLE":
+            icon = {"ERROR": "ERROR", "DONE": "CHECKMARK"}.get(state.preview_status, "INFO")
+            layout.label(text=state.preview_message, icon=icon)
+
+
 class PROMPTGS_PT_display(PromptGSPanel, bpy.types.Panel):
     bl_label = "Display"
     bl_options = {"DEFAULT_CLOSED"}
@@ -132,7 +151,7 @@ class PROMPTGS_PT_display(PromptGSPanel, bpy.types.Panel):
         layout.operator("promptgs.load_result", text="Load PLY…", icon="FILE")
 
 
-CLASSES = (PROMPTGS_PT_dataset, PROMPTGS_PT_prompts, PROMPTGS_PT_train, PROMPTGS_PT_display)
+CLASSES = (PROMPTGS_PT_dataset, PROMPTGS_PT_prompts, PROMPTGS_PT_train, PROMPTGS_PT_preview, PROMPTGS_PT_display)
 
 
 def register():

@@ -20,3 +20,24 @@ def toy(tmp_path_factory) -> Path:
 
     cfg = ToySceneConfig(width=128, height=96, focal=110.0, n_views=16, ground_grid=60, n_sfm_points=1500)
     return make_toy_scene(tmp_path_factory.mktemp("toy") / "scene", cfg)
+
+
+@pytest.fixture(scope="session")
+def blender_envs():
+    """Every supported Blender line's Python, made in the background (tests/blender_lines.py)."""
+    from blender_lines import LineEnvironments
+
+    envs = LineEnvironments()
+    yield envs
+    envs.close()
+
+
+@pytest.fixture(scope="session")
+def extension_zip(tmp_path_factory) -> Path:
+    """The extension zip built from this checkout, once: every line installs the same file."""
+    import sys
+
+    sys.path.insert(0, str(REPO / "tools"))
+    import build_extension
+
+    return build_extension.build(tmp_path_factory.mktemp("extension"))

@@ -1,7 +1,9 @@
-"""The installed extension inside Blender (bpy module), with fake/recorded trainers.
+"""The installed extension inside every supported Blender line, with fake/recorded trainers.
 
-One bpy subprocess runs tests/blender_scripts/addon_checks.py; each test here reads one
-of its checks. HOME points at a temporary folder, so a fresh user profile is used.
+For each line of tests/blender_lines.py one bpy subprocess (that line's bpy, in its own
+Python) installs the extension zip built from this checkout and runs
+tests/blender_scripts/addon_checks.py; each test here reads one of its checks. HOME points
+at a temporary folder, so a fresh user profile is used.
 """
 
 from __future__ import annotations
@@ -12,17 +14,18 @@ import shutil
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from blender_lines import LINES, BlenderLine, LineUnavailable
 
-pytest.importorskip("bpy", reason="needs the bpy module")  # find_spec only; no import here
+pytest.importorskip("bpy", reason="needs the bpy module")
 pytestmark = pytest.mark.blender
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = REPO / "tests" / "blender_scripts"
-sys.path.insert(0, str(REPO / "tools"))
 
 
 def projections(tumbler: Path, n_cameras: int = 6, n_points: int = 5) -> list[dict]:
@@ -72,11 +75,8 @@ def pinhole_dataset(folder: Path) -> list[dict]:
     return out
 
 
-def prepare(tmp: Path, shared_data: Path) -> Path:
-    """Build the zip, write the fake trainer wrapper and the config; returns the config path."""
-    import build_extension
-
-    zip_path = build_extension.build(tmp / "dist")
+def prepare(tmp: Path, shared_data: Path, zip_path: Path) -> Path:
+    """Write the fake trainer wrapper and the config; returns the config path."""
     fake = tmp / "fake_python"
     fake.write_text(f"#!/bin/sh\nexec {sys.executable} {SCRIPTS / 'fake_trainer.py'} \"$@\"\n")
     fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
@@ -89,16 +89,38 @@ def prepare(tmp: Path, shared_data: Path) -> Path:
     return tmp / "config.json"
 
 
-@pytest.fixture(scope="module")
-def results(tmp_path_factory, shared_data):
-    tmp = tmp_path_factory.mktemp("blender_addon")
-    config = prepare(tmp, shared_data)
-    env = dict(os.environ, HOME=str(tmp / "home"))
-    done = subprocess.run([sys.executable, str(SCRIPTS / "addon_checks.py"), str(config),
-                           str(tmp / "results.json")], env=env, capture_output=True, text=True, timeout=600)
-    if not (tmp / "results.json").is_file():
-        pytest.fail(f"the Blender script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
-    return json.loads((tmp / "results.json").read_text())
+@pytest.fixture(scope="session")
+def line_results(tmp_path_factory, shared_data, blender_envs, extension_zip):
+    """``line_results(line)``: (folder, check outcomes) of the add-on checks run in that
+    Blender line's bpy, once per line (a fresh user profile each)."""
+    done: dict = {}
+
+    def results(line: BlenderLine) -> tuple[Path, dict]:
+        if line not in done:
+            try:
+                python = blender_envs.python(line)
+            except LineUnavailable as exc:
+                done[line] = exc
+                return results(line)
+            tmp = tmp_path_factory.mktemp(f"addon-{line.id}")
+            config = prepare(tmp, shared_data, extension_zip)
+            env = dict(os.environ, HOME=str(tmp / "home"))
+            start = time.time()
+            proc = subprocess.run([python, str(SCRIPTS / "addon_checks.py"), str(config), str(tmp / "results.json")],
+                                  env=env, capture_output=True, text=True, timeout=600)
+            (tmp / "seconds").write_text(f"{time.time() - start:.1f}\n")
+            if (tmp / "results.json").is_file():
+                done[line] = (tmp, json.loads((tmp / "results.json").read_text()))
+            else:
+                done[line] = f"Blender {line.name}: the script failed before any check:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+        outcome = done[line]
+        if isinstance(outcome, LineUnavailable):
+            pytest.skip(str(outcome))
+        if isinstance(outcome, str):
+            pytest.fail(outcome)
+        return outcome
+
+    return results
 
 
 CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap", "root_puts_capture_upright", "non_square_pixels_project_exactly",
@@ -109,11 +131,29 @@ CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap"
           "never_imports_torch_or_engine"]
 
 
+@pytest.mark.parametrize("line", LINES, ids=str)
 @pytest.mark.parametrize("name", CHECKS)
-def test_blender(results, name):
-    assert name in results, f"check {name} did not run"
+def test_blender(line_results, line, name):
+    _, results = line_results(line)
+    assert name in results, f"check {name} did not run in Blender {line.name}"
     outcome = results[name]
-    assert outcome["ok"], f"{outcome['error']}\n{outcome.get('traceback', '')}"
+    assert outcome["ok"], f"Blender {line.name}: {outcome['error']}\n{outcome.get('traceback', '')}"
+
+
+@pytest.mark.parametrize("line", [line for line in LINES if line.bpy >= "5.1"], ids=str)
+def test_point_clouds_carry_what_the_mesh_carries(line_results, line):
+    """The same snapshot shown as a point cloud (5.1+) and as a points-only mesh (5.0)."""
+    mesh_line = next(candidate for candidate in LINES if candidate.bpy.startswith("5.0"))
+    (cloud_dir, cloud), (mesh_dir, mesh) = line_results(line), line_results(mesh_line)
+    for results in (cloud, mesh):
+        assert results["train_with_recorded_events_updates_objects"]["ok"]
+    assert cloud["train_with_recorded_events_updates_objects"]["object_type"] == "POINTCLOUD"
+    assert mesh["train_with_recorded_events_updates_objects"]["object_type"] == "MESH"
+    with np.load(cloud_dir / "gaussians_object.npz") as a, np.load(mesh_dir / "gaussians_object.npz") as b:
+        assert str(a["snapshot"]) == str(b["snapshot"])
+        assert sorted(a.files) == sorted(b.files)
+        for key in a.files:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
 def _blender_binary() -> str | None:
@@ -129,11 +169,11 @@ def _blender_binary() -> str | None:
     return binary if (major, minor) >= (4, 2) else None
 
 
-def test_same_checks_under_blender_binary(tmp_path, shared_data):
+def test_same_checks_under_blender_binary(tmp_path, shared_data, extension_zip):
     binary = _blender_binary()
     if binary is None:
         pytest.skip("no Blender ≥ 4.2 binary (set $BLENDER)")
-    config = prepare(tmp_path, shared_data)
+    config = prepare(tmp_path, shared_data, extension_zip)
     env = dict(os.environ, HOME=str(tmp_path / "home"))
     done = subprocess.run([binary, "-b", "--factory-startup", "--python-exit-code", "1", "--python",
                            str(SCRIPTS / "addon_checks.py"), "--", str(config), str(tmp_path / "results.json")],

@@ -140,6 +140,38 @@ def test_non_square_pixels(fy):
         np.testing.assert_allclose(_blender_pixel(local, s, 640, 480), expected, atol=1e-6)
 
 
+@pytest.mark.parametrize("fy", [500.0, 520.0, 470.0])
+def test_blender_camera_intrinsics_invert_the_settings(fy):
+    """A dataset camera made into Blender settings reads back as the same pinhole."""
+    s = coords.blender_camera_settings(640, 480, 500.0, fy, 330.5, 250.25)
+    back = coords.blender_camera_intrinsics(640, 480, s["lens"], s["sensor_width"], 24.0, s["sensor_fit"],
+                                            s["shift_x"], s["shift_y"], s["pixel_aspect"])
+    np.testing.assert_allclose(back, (500.0, fy, 330.5, 250.25), rtol=1e-12)
+
+
+def test_blender_camera_intrinsics_follow_the_sensor_fit():
+    # 36 mm sensor width, 50 mm lens: AUTO fits the longer side of the frame with the width
+    assert coords.blender_camera_intrinsics(800, 600, 50.0, 36.0, 24.0)[0] == pytest.approx(50 / 36 * 800)
+    assert coords.blender_camera_intrinsics(600, 800, 50.0, 36.0, 24.0)[0] == pytest.approx(50 / 36 * 800)
+    assert coords.blender_camera_intrinsics(600, 800, 50.0, 36.0, 24.0, "HORIZONTAL")[0] == pytest.approx(50 / 36 * 600)
+    assert coords.blender_camera_intrinsics(800, 600, 50.0, 36.0, 24.0, "VERTICAL")[0] == pytest.approx(50 / 24 * 600)
+    # a shift moves the principal point by that fraction of the fitted side
+    fx, fy, cx, cy = coords.blender_camera_intrinsics(600, 800, 50.0, 36.0, 24.0, "AUTO", 0.1, -0.05)
+    assert (cx, cy) == (pytest.approx(300 - 0.1 * 800), pytest.approx(400 - 0.05 * 800))
+
+
+def test_blender_camera_pose_round_trip():
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        q = coords.rotmat_to_quat(coords.quat_to_rotmat(rng.normal(size=4)))
+        t = rng.normal(size=3)
+        matrix = coords.colmap_camera_to_blender(q, t)
+        matrix[:3, :3] *= 2.5  # a scaled camera object is the same camera
+        world_to_camera = coords.blender_camera_to_colmap(matrix)
+        np.testing.assert_allclose(world_to_camera[:3, :3], coords.quat_to_rotmat(q), atol=1e-12)
+        np.testing.assert_allclose(world_to_camera[:3, 3], t, atol=1e-12)
+
+
 def test_dataset_to_blender_puts_up_on_z():
     rng = np.random.default_rng(1)
     for up in [(0, -1, 0), (0, 0, -1), (0, 0, 1), *rng.normal(size=(5, 3))]:

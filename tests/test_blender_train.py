@@ -1,9 +1,10 @@
-"""The installed extension with the real trainer: a short CPU run and a cancel.
+"""The installed extension with the real trainer, in every supported Blender line.
 
-Runs tests/blender_scripts/train_checks.py in one bpy subprocess (HOME in a temporary
-folder). The trainer is ``python -m promptgs_engine train`` with this interpreter. The
-run also renders docs/images/blender_training.png (Workbench, from a dataset camera)
-when PROMPTGS_UPDATE_DOCS_IMAGE=1, else into the test's temporary folder.
+For each line of tests/blender_lines.py, tests/blender_scripts/train_checks.py runs in one
+bpy subprocess of that line (HOME in a temporary folder): a short CPU run and a cancel.
+The trainer is ``python -m promptgs_engine train`` with this interpreter. The run of the
+project's own line also renders docs/images/blender_training.png (Workbench, from a
+dataset camera) when PROMPTGS_UPDATE_DOCS_IMAGE=1, else into the test's temporary folder.
 """
 
 from __future__ import annotations
@@ -12,40 +13,47 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from blender_lines import LINES, LineUnavailable
 
 pytest.importorskip("bpy", reason="needs the bpy module")
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = REPO / "tests" / "blender_scripts"
-sys.path.insert(0, str(REPO / "tools"))
 
 
-@pytest.fixture(scope="module")
-def run(tmp_path_factory, shared_data):
+@pytest.fixture(scope="module", params=LINES, ids=str)
+def run(request, tmp_path_factory, shared_data, blender_envs, extension_zip):
     pytest.importorskip("promptgs_engine.train", reason="needs the trainer")
-    import build_extension
-
-    tmp = tmp_path_factory.mktemp("blender_train")
-    image = (REPO / "docs" / "images" / "blender_training.png" if os.environ.get("PROMPTGS_UPDATE_DOCS_IMAGE")
-             else tmp / "blender_training.png")
+    line = request.param
+    try:
+        python = blender_envs.python(line)
+    except LineUnavailable as exc:
+        pytest.skip(str(exc))
+    tmp = tmp_path_factory.mktemp(f"train-{line.id}")
+    update_docs = bool(os.environ.get("PROMPTGS_UPDATE_DOCS_IMAGE")) and python == sys.executable
+    image = REPO / "docs" / "images" / "blender_training.png" if update_docs else tmp / "blender_training.png"
     image.parent.mkdir(parents=True, exist_ok=True)
     strategy = "promptgs" if (REPO / "promptgs_engine" / "strategies" / "promptgs.py").is_file() else "3dgs"
-    config = {"zip": str(build_extension.build(tmp / "dist")), "tmp": str(tmp), "python": sys.executable,
+    config = {"zip": str(extension_zip), "tmp": str(tmp), "python": sys.executable,
               "tumbler": str(shared_data / "tumbler"), "iterations": 20, "snapshot_every": 10,
               "strategy": strategy, "timeout": 240, "image": str(image), "render_camera": "12.jpg",
-              "prompt_rect": [210, 160, 560, 380]}  # the cup in 12.jpg
+              "prompt_rect": [210, 160, 560, 380],  # the cup in 12.jpg
+              "update_docs": update_docs}
     (tmp / "config.json").write_text(json.dumps(config))
     (tmp / "home").mkdir()
     env = dict(os.environ, HOME=str(tmp / "home"), OMP_NUM_THREADS=os.environ.get("OMP_NUM_THREADS", "2"))
-    done = subprocess.run([sys.executable, str(SCRIPTS / "train_checks.py"), str(tmp / "config.json"),
+    start = time.time()
+    done = subprocess.run([python, str(SCRIPTS / "train_checks.py"), str(tmp / "config.json"),
                            str(tmp / "results.json")], env=env, capture_output=True, text=True, timeout=900)
+    (tmp / "seconds").write_text(f"{time.time() - start:.1f}\n")
     if not (tmp / "results.json").is_file():
-        pytest.fail(f"the Blender script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+        pytest.fail(f"Blender {line.name}: the script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
     return tmp, json.loads((tmp / "results.json").read_text())
 
 
@@ -84,6 +92,54 @@ def test_rendered_training_image(run):
     assert Path(run[0] / "config.json").is_file()
     image = json.loads((run[0] / "config.json").read_text())["image"]
     assert Path(image).is_file() and Path(image).stat().st_size > 10_000
+
+
+def test_preview_of_a_dataset_camera_is_promptgs_render(run, tmp_path):
+    """*Render Preview* from a dataset camera shows what ``promptgs render RUN --camera NAME``
+    writes, to within 1/255 per pixel, beside the dataset's photo."""
+    from PIL import Image
+
+    from promptgs_engine.evaluation import render_run
+
+    tmp, results = run
+    _ok(results, "preview_dataset_camera")
+    out = Path(_ok(results, "train_real_trainer")["out"])
+    camera = json.loads((tmp / "config.json").read_text())["render_camera"]
+    [path] = render_run(out, tmp_path, [camera], quiet=True)
+    expected = np.asarray(Image.open(path).convert("RGB"), np.float32) / 255.0
+    shown = np.load(tmp / "preview_dataset_camera.npy")
+    assert shown.shape == expected.shape
+    assert expected.std() > 0.05  # a picture of the scene, not an empty frame
+    assert np.abs(shown - expected).max() <= 1.0 / 255.0 + 1e-6
+    both = np.load(tmp / "preview_side_by_side.npy")
+    width = expected.shape[1]
+    np.testing.assert_array_equal(both[:, :width], shown)
+    photo = np.asarray(Image.open(run_photo(out, camera)).convert("RGB"), np.float32) / 255.0
+    assert np.abs(both[:, width:] - photo).max() <= 1.0 / 255.0 + 1e-6
+    if _updates_docs(tmp):
+        Image.fromarray((both * 255).round().astype(np.uint8)).save(REPO / "docs" / "images" / "preview_dataset_camera.png")
+
+
+def test_preview_of_a_placed_camera_shows_another_view(run):
+    tmp, results = run
+    info = _ok(results, "preview_user_camera")
+    assert info["size"] == [240, 320] and info["max_error_px"] < 0.05
+    shown = np.load(tmp / "preview_user_camera.npy")
+    assert shown.shape == (320, 240, 3) and shown.std() > 0.05
+    if _updates_docs(tmp):
+        from PIL import Image
+
+        Image.fromarray((shown * 255).round().astype(np.uint8)).save(REPO / "docs" / "images" / "preview_placed_camera.png")
+
+
+def run_photo(run_dir: Path, camera: str) -> Path:
+    cfg = json.loads((run_dir / "cfg.json").read_text())
+    return Path(cfg["dataset"]) / cfg["images"] / camera
+
+
+def _updates_docs(tmp: Path) -> bool:
+    """Whether this line's run writes the docs images (PROMPTGS_UPDATE_DOCS_IMAGE=1, the project's own bpy)."""
+    return json.loads((tmp / "config.json").read_text())["update_docs"]
 
 
 def test_cancel_keeps_last_snapshot(run):

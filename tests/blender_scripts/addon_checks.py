@@ -41,7 +41,7 @@ def import_tumbler():
     cams = [o for o in root.children if o.type == "CAMERA"]
     points = bpy.data.objects["PromptGS Sparse Points tumbler"]
     assert len(cams) == 77, len(cams)
-    assert len(points.data.vertices) == 9262
+    assert len(points.data.vertices) == 9262 and points.type == "MESH"  # editable: a mesh on every line
     assert {"color", "error"} <= set(points.data.attributes.keys())
     assert scene().promptgs.distortion == ""
     return {"cameras": len(cams)}
@@ -215,8 +215,9 @@ def train_with_recorded_events_updates_objects():
     def first_snapshot():
         obj = bpy.data.objects.get("PromptGS Gaussians")
         if obj is not None and "pointer" not in seen:
-            seen["pointer"] = (obj.as_pointer(), obj.data.as_pointer())
-            seen["count"] = len(obj.data.vertices)
+            seen["pointer"] = obj.as_pointer()
+            seen["data"] = obj.data.as_pointer()
+            seen["count"] = addon("display").point_count(obj)
         return False
 
     # drain one batch at a time so the snapshots arrive separately
@@ -227,24 +228,35 @@ def train_with_recorded_events_updates_objects():
     st = state()
     assert st.status == "DONE", (st.status, st.message)
     obj = bpy.data.objects["PromptGS Gaussians"]
-    assert (obj.as_pointer(), obj.data.as_pointer()) == seen["pointer"], "the object was re-created"
+    assert obj.as_pointer() == seen["pointer"], "the object was re-created"
+    if obj.type == "MESH":  # a point cloud gets a new datablock when its count changes (display._resize)
+        assert obj.data.as_pointer() == seen["data"], "the mesh was re-created"
     with np.load(st.last_snapshot) as npz:
         data = dict(npz)
     display = addon("display")
     n = len(data["means"])
-    assert len(obj.data.vertices) == n == st.n_gaussians == 400
+    assert display.point_count(obj) == n == st.n_gaussians == 400
     np.testing.assert_allclose(display.get_attribute(obj, "position"), data["means"], atol=1e-6)
     for key in ("opacity", "scale", "rotation", "score", "error"):
         np.testing.assert_allclose(display.get_attribute(obj, key), data[key], atol=1e-6, err_msg=key)
     np.testing.assert_allclose(display.get_attribute(obj, "color")[:, :3], data["color"], atol=1e-6)
     assert obj.parent == scene().promptgs.root
     field = bpy.data.objects["PromptGS Loss Field"]
-    assert len(field.data.vertices) == 64
+    assert display.point_count(field) == 64
     np.testing.assert_allclose(display.get_attribute(field, "loss"), data["field_loss"], atol=1e-6)
     np.testing.assert_allclose(display.get_attribute(field, "attention"), data["field_attention"], atol=1e-6)
     bins = display.get_attribute(obj, "display_bin")
     assert bins.min() >= 0 and bins.max() == display.N_BINS - 1  # coloured by error
-    return {"first_snapshot_count": seen["count"], "final_count": n}
+    # a point cloud where Blender can resize one from Python (5.1+), a points-only mesh before
+    kind = "POINTCLOUD" if bpy.app.version >= (5, 1, 0) else "MESH"
+    assert obj.type == field.type == kind, (obj.type, field.type, bpy.app.version_string)
+    # what the object carries, for the comparison across lines (test_blender_addon.py)
+    np.savez(TMP / "gaussians_object.npz", snapshot=np.array(Path(st.last_snapshot).name),
+             **{f"gaussians_{key}": display.get_attribute(obj, key)
+                for key in ("position", "opacity", "scale", "rotation", "color", "score", "error")},
+             **{f"field_{key}": display.get_attribute(field, key) for key in ("position", "loss", "attention")})
+    return {"first_snapshot_count": seen["count"], "final_count": n, "object_type": obj.type,
+            "blender": bpy.app.version_string}
 
 
 @check
@@ -265,7 +277,7 @@ def cancel_keeps_last_snapshot():
     assert (out / "cancelled").is_file(), "the trainer was not interrupted cleanly"
     with np.load(st.last_snapshot) as npz:
         n = len(npz["means"])
-    assert len(bpy.data.objects["PromptGS Gaussians"].data.vertices) == n
+    assert addon("display").point_count(bpy.data.objects["PromptGS Gaussians"]) == n
     assert training.current_run() is None
     return {"message": st.message}
 
@@ -346,7 +358,7 @@ def load_result_reads_3dgs_ply():
     obj = bpy.data.objects["PromptGS Gaussians"]
     display = addon("display")
     col = {name: table[:, i] for i, name in enumerate(names)}
-    assert len(obj.data.vertices) == n
+    assert display.point_count(obj) == n
     np.testing.assert_allclose(display.get_attribute(obj, "position")[:, 0], col["x"], atol=1e-6)
     np.testing.assert_allclose(display.get_attribute(obj, "opacity"), 1 / (1 + np.exp(-col["opacity"])), atol=1e-6)
     return {"n": n}
@@ -367,7 +379,7 @@ def million_points_update():
     start = time.time()
     addon("training").show_gaussians(bpy.context, data)
     seconds = time.time() - start
-    assert len(obj.data.vertices) == n
+    assert display.point_count(obj) == n
     start = time.time()
     depsgraph = bpy.context.evaluated_depsgraph_get()
     depsgraph.update()
@@ -404,20 +416,27 @@ class StubLayout:
         object.__setattr__(self, name, value)
 
 
+def shown_vertices(obj) -> int:
+    """Vertices of what the display modifier makes of a points object (spheres are a mesh)."""
+    evaluated = obj.evaluated_get(bpy.context.evaluated_depsgraph_get())
+    if hasattr(evaluated, "evaluated_geometry"):  # 4.3+: any object type
+        geometry = evaluated.evaluated_geometry()  # the mesh lives as long as this set
+        return len(geometry.mesh.vertices) if geometry.mesh is not None else 0
+    return len(evaluated.data.vertices)  # 4.2: the points are a mesh there
+
+
 @check
 def display_settings_apply():
     obj = bpy.data.objects["PromptGS Gaussians"]
     display = addon("display")
     mod = obj.modifiers["PromptGS Display"]
-    spheres_id = display._socket_id(mod.node_group, "Spheres")
-    radius_id = display._socket_id(mod.node_group, "Radius")
     settings = scene().promptgs
     settings.display_style = "POINTS"
-    assert mod[spheres_id] is False or mod[spheres_id] == 0
+    assert not display.modifier_input(mod, "Spheres")
     settings.display_style = "SPHERES"
-    assert mod[spheres_id]
+    assert display.modifier_input(mod, "Spheres")
     settings.point_radius = 0.0123
-    assert abs(mod[radius_id] - 0.0123) < 1e-6
+    assert abs(display.modifier_input(mod, "Radius") - 0.0123) < 1e-6
     settings.color_by = "opacity"
     assert obj["promptgs_color_by"] == "opacity"
     opacity = display.get_attribute(obj, "opacity")
@@ -432,14 +451,12 @@ def display_settings_apply():
     field = bpy.data.objects["PromptGS Loss Field"]
     fmod = field.modifiers["PromptGS Display"]
     settings.field_cutoff = 0.75
-    assert abs(fmod[display._socket_id(fmod.node_group, "Min Value")] - 0.75) < 1e-6
-    depsgraph = bpy.context.evaluated_depsgraph_get()
-    shown = field.evaluated_get(depsgraph).data
+    assert abs(display.modifier_input(fmod, "Min Value") - 0.75) < 1e-6
     value = display.get_attribute(field, "display_value")
     bins = display.get_attribute(field, "display_bin")
     assert bins.min() >= display.N_BINS  # the loss field's own palette
     n_vertices_per_sphere = 12  # ico sphere, 1 subdivision
-    assert len(shown.vertices) == n_vertices_per_sphere * int((value >= 0.75).sum()) > 0
+    assert shown_vertices(field) == n_vertices_per_sphere * int((value >= 0.75).sum()) > 0
     settings.field_cutoff = 0.5
     return {"field_shown": int((value >= 0.75).sum()), "field_total": len(value)}
 

@@ -149,8 +149,79 @@ def train_real_trainer():
     arrays = {key: display.get_attribute(obj, key) for key in
               ("position", "opacity", "scale", "rotation", "color", "score", "error")}
     np.savez(TMP / "object_attributes.npz", **arrays)
-    info.update({"ply": st.result_ply, "n": len(obj.data.vertices), "status_message": st.message,
+    info.update({"ply": st.result_ply, "n": display.point_count(obj), "status_message": st.message,
                  "psnr": st.psnr, "step": st.step, "loss_field": "PromptGS Loss Field" in bpy.data.objects})
+    return info
+
+
+def preview_now() -> dict:
+    """Render Preview of the active camera, driven to its end; the outcome and the pixels."""
+    bpy.ops.promptgs.render_preview()
+    run_until_idle(config["timeout"])
+    st = state()
+    assert st.preview_status == "DONE", (st.preview_status, st.preview_message)
+    image = bpy.data.images["PromptGS Preview"]
+    return {"message": st.preview_message, "size": list(image.size)}
+
+
+@check
+def preview_dataset_camera():
+    """The finished run from a dataset camera: the datablock holds the trainer's render."""
+    sc = scene()
+    addon("importer").use_camera(sc, bpy.data.objects[config["render_camera"]])
+    sc.render.resolution_percentage = 25  # the run trained on images_4, a quarter of the model's size
+    info = preview_now()
+    preview = addon("preview")
+    image = bpy.data.images["PromptGS Preview"]
+    assert tuple(image.size) == (sc.render.resolution_x // 4, sc.render.resolution_y // 4), tuple(image.size)
+    np.save(TMP / "preview_dataset_camera.npy", preview.pixels(image)[..., :3])
+    both = bpy.data.images["PromptGS Preview | Image"]
+    assert tuple(both.size) == (2 * image.size[0], image.size[1]), tuple(both.size)
+    np.save(TMP / "preview_side_by_side.npy", preview.pixels(both)[..., :3])
+    info["camera_file"] = str(Path(state().out_dir) / "preview" / "camera.json")
+    return info
+
+
+@check
+def preview_user_camera():
+    """A camera placed by a script (portrait, AUTO sensor fit, shifted): the camera file it
+    sends projects the sparse points where Blender's own camera does."""
+    from bpy_extras.object_utils import world_to_camera_view
+
+    sc = scene()
+    reference = bpy.data.objects[config["render_camera"]]
+    data = bpy.data.cameras.new("Placed")
+    data.lens, data.sensor_width, data.sensor_fit = 30.0, 36.0, "AUTO"
+    data.shift_x, data.shift_y = 0.05, -0.03
+    cam = bpy.data.objects.new("Placed Camera", data)
+    sc.collection.objects.link(cam)
+    # a step back from a dataset camera and a turn, so the view differs but sees the cup
+    back = reference.matrix_world.to_3x3() @ Vector((0.0, 0.0, 1.0))
+    cam.matrix_world = reference.matrix_world.copy()
+    cam.location = reference.matrix_world.translation + 0.6 * back
+    cam.rotation_euler.z += 0.15
+    sc.camera = cam
+    sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage = 240, 320, 100
+    sc.render.pixel_aspect_x = sc.render.pixel_aspect_y = 1.0
+    bpy.context.view_layer.update()
+    info = preview_now()
+    image = bpy.data.images["PromptGS Preview"]
+    assert tuple(image.size) == (240, 320), tuple(image.size)
+    sent = json.loads((Path(state().out_dir) / "preview" / "camera.json").read_text())
+    K, w2c = np.array(sent["K"]), np.array(sent["world_to_camera"])
+    points = next(o for o in bpy.data.objects if o.name.startswith("PromptGS Sparse Points"))
+    co = addon("display").get_attribute(points, "position")[::50]
+    errors = []
+    for p in co:
+        local = w2c[:3, :3] @ p + w2c[:3, 3]
+        if local[2] <= 0.1:
+            continue
+        uv = (K @ (local / local[2]))[:2]
+        ndc = world_to_camera_view(sc, cam, points.matrix_world @ Vector(p.tolist()))  # points hold dataset coordinates
+        errors.append(float(np.abs(uv - [ndc.x * 240, (1.0 - ndc.y) * 320]).max()))
+    assert len(errors) > 20 and max(errors) < 0.05, (len(errors), max(errors) if errors else None)
+    np.save(TMP / "preview_user_camera.npy", addon("preview").pixels(image)[..., :3])
+    info.update({"max_error_px": max(errors), "n_points": len(errors)})
     return info
 
 
@@ -176,7 +247,7 @@ def cancel_real_trainer():
         n = len(npz["means"])
         means = npz["means"]
     obj = bpy.data.objects["PromptGS Gaussians"]
-    assert len(obj.data.vertices) == n
+    assert addon("display").point_count(obj) == n
     np.testing.assert_allclose(addon("display").get_attribute(obj, "position"), means, atol=1e-6)
     return {"message": st.message, "returncode": run.process.returncode, "snapshot_step": st.snapshot_step,
             "last_output": st.last_output}
