@@ -8,7 +8,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 from mathutils import Vector
 
-from . import colmap, display, importer, plyio, prompts, training
+from . import colmap, display, importer, plyio, prompts, reconstruct, training
 from .props import prefs
 from .trainer import find_python, probe
 
@@ -249,6 +249,43 @@ class PROMPTGS_OT_generate_dataset(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class PROMPTGS_OT_reconstruct(bpy.types.Operator):
+    """Make a dataset from a folder of photos or a video (structure from motion in the trainer's environment), then import it"""
+
+    bl_idname = "promptgs.reconstruct"
+    bl_label = "Reconstruct from Photos"
+
+    filepath: StringProperty(subtype="FILE_PATH", description="A video file, or empty to use the folder")
+    directory: StringProperty(subtype="DIR_PATH", description="A folder of photos")
+    filter_folder: BoolProperty(default=True, options={"HIDDEN"})
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        path = Path(bpy.path.abspath(self.filepath)) if self.filepath else None
+        source = path if path is not None and path.is_file() else Path(bpy.path.abspath(self.directory))
+        try:
+            training.start_reconstruction(context, source)
+        except training.UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, context.window_manager.promptgs_run.sfm_message)
+        return {"FINISHED"}
+
+
+class PROMPTGS_OT_cancel_reconstruct(bpy.types.Operator):
+    """Stop structure from motion (a new run on the same photos resumes what was extracted and matched)"""
+
+    bl_idname = "promptgs.cancel_reconstruct"
+    bl_label = "Cancel Reconstruction"
+
+    def execute(self, context):
+        reconstruct.cancel()
+        return {"FINISHED"}
+
+
 class PROMPTGS_OT_render_preview(bpy.types.Operator):
     """Render the trained Gaussians from the active camera with the trainer's rasterizer (in the background)"""
 
@@ -273,7 +310,7 @@ CLASSES = (
     PROMPTGS_OT_import_colmap, PROMPTGS_OT_use_camera, PROMPTGS_OT_add_prompt, PROMPTGS_OT_select_prompt,
     PROMPTGS_OT_remove_prompt, PROMPTGS_OT_train, PROMPTGS_OT_cancel, PROMPTGS_OT_load_result,
     PROMPTGS_OT_find_trainer, PROMPTGS_OT_test_trainer, PROMPTGS_OT_generate_dataset,
-    PROMPTGS_OT_render_preview,
+    PROMPTGS_OT_render_preview, PROMPTGS_OT_reconstruct, PROMPTGS_OT_cancel_reconstruct,
 )
 
 

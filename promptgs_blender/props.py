@@ -147,6 +147,11 @@ class PromptGSRunState(bpy.types.PropertyGroup):
         (s, s.title(), "") for s in ("IDLE", "RUNNING", "DONE", "ERROR")])
     dataset_message: StringProperty()
     dataset_out: StringProperty()
+    sfm_status: EnumProperty(name="Reconstruction", default="IDLE", items=[
+        (s, s.title(), "") for s in ("IDLE", "RUNNING", "DONE", "CANCELLED", "ERROR")])
+    sfm_message: StringProperty()
+    sfm_out: StringProperty()
+    sfm_progress: FloatProperty(min=0.0, max=1.0, subtype="FACTOR")
     preview_status: EnumProperty(name="Preview job", default="IDLE", items=[
         (s, s.title(), "") for s in ("IDLE", "RUNNING", "DONE", "ERROR")])
     preview_message: StringProperty()

@@ -16,7 +16,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from . import colmap, display, importer, plyio, preview, prompts
+from . import colmap, display, importer, plyio, preview, prompts, reconstruct
 from .props import prefs
 from .trainer import TrainerError, TrainerRun, check_python, engine_command, find_python, reduce_event
 
@@ -212,6 +212,7 @@ def drain_and_apply(context=None) -> bool:
         else:
             busy = True
     busy = preview.drain(context) or busy
+    busy = reconstruct.drain(context) or busy
     _redraw(context)
     return busy
 
@@ -336,6 +337,24 @@ def start_preview(context) -> preview.PreviewJob:
     return job
 
 
+def start_reconstruction(context, source: Path) -> None:
+    """*Reconstruct from Photos*: ``promptgs sfm`` on a folder of photos or a video, into a
+    new folder of the output root; imported when it is done."""
+    state = context.window_manager.promptgs_run
+    name = source.stem if source.is_file() else source.name
+    out = output_root(context) / f"{name}-sfm-{time.strftime('%Y%m%d-%H%M%S')}"
+    try:
+        python = trainer_python(context)
+        if not python:
+            raise TrainerError(check_python(""))
+        reconstruct.start(context, python, source, out)
+    except (reconstruct.ReconstructError, TrainerError, OSError) as exc:
+        state.sfm_status, state.sfm_message = "ERROR", str(exc)
+        raise UserError(str(exc)) from None
+    if not bpy.app.background and not bpy.app.timers.is_registered(_timer):
+        bpy.app.timers.register(_timer, first_interval=0.25)
+
+
 def stop_all(*_args) -> None:
     """Stop running jobs (Blender quits, another file loads, the add-on is disabled)."""
     global _train, _dataset_job
@@ -344,6 +363,7 @@ def stop_all(*_args) -> None:
             run.cancel(timeout=10.0, block=True)
     _train = _dataset_job = None
     preview.stop()
+    reconstruct.stop()
 
 
 @bpy.app.handlers.persistent

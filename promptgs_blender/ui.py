@@ -25,7 +25,16 @@ class PROMPTGS_PT_dataset(PromptGSPanel, bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         settings = context.scene.promptgs
+        state = context.window_manager.promptgs_run
         layout.operator("promptgs.import_colmap", icon="IMPORT")
+        if state.sfm_status == "RUNNING":
+            layout.operator("promptgs.cancel_reconstruct", icon="CANCEL")
+            layout.progress(factor=state.sfm_progress, type="BAR", text=state.sfm_message)
+        else:
+            layout.operator("promptgs.reconstruct", icon="OUTLINER_OB_CAMERA")
+            if state.sfm_status != "IDLE":
+                icon = {"ERROR": "ERROR", "DONE": "CHECKMARK", "CANCELLED": "CANCEL"}.get(state.sfm_status, "INFO")
+                layout.label(text=state.sfm_message, icon=icon)
         col = layout.column()
         col.prop(settings, "root")
         col.prop(settings, "images")
@@ -39,7 +48,6 @@ class PROMPTGS_PT_dataset(PromptGSPanel, bpy.types.Panel):
         row = layout.row(align=True)
         row.prop(settings, "dataset_preset", text="")
         row.operator("promptgs.generate_dataset", text="Test Dataset", icon="RENDER_STILL")
-        state = context.window_manager.promptgs_run
         if state.dataset_status != "IDLE":
             layout.label(text=state.dataset_message, icon="ERROR" if state.dataset_status == "ERROR" else "INFO")
         if state.dataset_status == "DONE" and state.dataset_out:

@@ -344,6 +344,59 @@ def dataset_generation_runs_in_background():
 
 
 @check
+def reconstruct_from_photos_imports_the_result():
+    """sfm runs in the background, its stage line shows, and its dataset is imported."""
+    fake_trainer("ok")
+    photos = Path(config["tumbler"]) / "images"
+    bpy.ops.promptgs.reconstruct(directory=str(photos))
+    assert state().sfm_status == "RUNNING", (state().sfm_status, state().sfm_message)
+    lines = []
+    training = addon("training")
+    deadline = time.time() + 60
+    while training.drain_and_apply(bpy.context) and time.time() < deadline:
+        lines.append(state().sfm_message)
+        time.sleep(0.01)
+    assert state().sfm_status == "DONE", (state().sfm_status, state().sfm_message)
+    assert any(line.startswith(("features", "matching", "mapping")) for line in lines), lines
+    assert "76 of 77 images registered" in state().sfm_message, state().sfm_message
+    root = scene().promptgs.root
+    assert Path(root["promptgs_dataset"]) == Path(state().sfm_out).resolve()
+    assert len([o for o in root.children if o.type == "CAMERA"]) == 77
+    # back to the tumbler import for the rest
+    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
+    scene().promptgs.images = "images_4"
+    return {"message": state().sfm_message, "stage_lines": sorted(set(lines))[:6]}
+
+
+@check
+def reconstruct_errors_and_cancel():
+    fake_trainer("crash")
+    photos = Path(config["tumbler"]) / "images"
+    bpy.ops.promptgs.reconstruct(directory=str(photos))
+    run_until_idle(60)
+    assert state().sfm_status == "ERROR" and "only 6 of 77 images registered" in state().sfm_message, state().sfm_message
+    fake_trainer("slow")
+    bpy.ops.promptgs.reconstruct(directory=str(photos))
+    out = Path(state().sfm_out)
+    training = addon("training")
+    deadline = time.time() + 60
+    while not state().sfm_message.startswith("mapping") and time.time() < deadline:
+        training.drain_and_apply(bpy.context)
+        time.sleep(0.05)
+    bpy.ops.promptgs.cancel_reconstruct()
+    run_until_idle(60)
+    assert state().sfm_status == "CANCELLED", (state().sfm_status, state().sfm_message)
+    assert (out.parent / "sfm_cancelled").is_file(), "the reconstruction was not interrupted cleanly"
+    try:
+        bpy.ops.promptgs.reconstruct(directory=str(TMP / "no_such_photos"))
+        raise AssertionError("reconstruct did not fail")
+    except RuntimeError:
+        pass
+    assert state().sfm_status == "ERROR" and "no_such_photos: not found" in state().sfm_message, state().sfm_message
+    return {"message": state().sfm_message}
+
+
+@check
 def load_result_reads_3dgs_ply():
     rng = np.random.default_rng(3)
     n = 500
@@ -466,7 +519,7 @@ def panels_draw_in_every_state():
     ui = addon("ui")
     labels = {}
     for status in ("IDLE", "RUNNING", "ERROR", "DONE"):
-        state().status = status
+        state().status = state().sfm_status = state().preview_status = status
         state().error_lines = "line one\nline two"
         log = []
         for cls in ui.CLASSES:

@@ -8,6 +8,7 @@ JSON-lines events. ``FAKE_TRAINER_MODE`` picks the behaviour: ``ok`` (default), 
 
 import json
 import os
+import shutil
 import signal
 import sys
 import time
@@ -53,11 +54,41 @@ def dataset(argv, mode):
     (out / "done").write_text(" ".join(argv))
 
 
+def sfm(argv, mode):
+    """``promptgs sfm PHOTOS --out DATASET --events``: the stages, then a dataset made of
+    the model beside PHOTOS (a COLMAP dataset's images/ folder) and links to the photos."""
+    source, out = Path(argv[argv.index("sfm") + 1]), Path(argv[argv.index("--out") + 1])
+    photos = sorted(p.name for p in source.iterdir())
+    emit(event="sfm_start", input=str(source), kind="images", out=str(out), options={})
+    try:
+        for index, (stage, unit) in enumerate([("features", "img"), ("matching", "pair"), ("mapping", "img")], 1):
+            total = len(photos) if unit == "img" else 3 * len(photos)
+            emit(event="sfm_stage", stage=stage, index=index, n_stages=4, total=total, unit=unit, detail="")
+            if mode == "crash" and stage == "mapping":
+                emit(event="error", message=f"{source}: only 6 of {len(photos)} images registered", stage=stage, step=None, log=None)
+                sys.exit(2)
+            for done in range(0, total + 1, max(1, total // 4)):
+                emit(event="sfm_progress", stage=stage, done=done, total=total, unit=unit)
+                time.sleep(0.2 if mode == "slow" else 0.001)
+        while mode == "slow":
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        (out.parent / "sfm_cancelled").write_text("1")
+        emit(event="error", message="cancelled", stage="mapping", step=None, log=None)
+        sys.exit(130)
+    shutil.copytree(source.parent / "sparse", out / "sparse")
+    (out / "images").symlink_to(source)
+    summary = {"status": "ok", "images_given": len(photos), "images_registered": len(photos) - 1, "points": 9262}
+    emit(event="sfm_done", out=str(out), summary=summary)
+
+
 def main(argv):
     signal.signal(signal.SIGINT, signal.default_int_handler)  # as the real CLI does
     mode = os.environ.get("FAKE_TRAINER_MODE", "ok")
     if "dataset" in argv:
         return dataset(argv, mode)
+    if "sfm" in argv:
+        return sfm(argv, mode)
     out = Path(argv[argv.index("--out") + 1])
     job = json.loads(Path(argv[argv.index("--job") + 1]).read_text()) if "--job" in argv else {}
     iterations = int(job.get("iterations", 30))
