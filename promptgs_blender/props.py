@@ -92,6 +92,14 @@ class PromptGSSettings(bpy.types.PropertyGroup):
     budget: IntProperty(name="Budget", default=0, min=0, description="Maximum number of Gaussians (0: no limit)")
     auto_prompts: IntProperty(name="Auto Prompts", default=0, min=0,
                               description="Also add the error field's top N proposals as prompts (0: off)")
+    compact: BoolProperty(
+        name="Compact", default=False,
+        description="When growth ends, remove the Gaussians that carry the least of the training views "
+                    "and fine-tune the rest (prompted objects are kept)")
+    nproc: IntProperty(
+        name="Processes", default=1, min=1, soft_max=8,
+        description="Training processes on this machine (data-parallel, torchrun): each trains its share of "
+                    "every step's views")
     backend: EnumProperty(name="Device", default="PREFS", items=[
         ("PREFS", "Default", "The default device of the preferences"), ("auto", "Auto", ""),
         ("cpu", "CPU", ""), ("cuda", "CUDA", "")])

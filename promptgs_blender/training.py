@@ -94,6 +94,10 @@ def build_job(context, out: Path) -> dict:
         job["budget"] = settings.budget
     if settings.auto_prompts:
         job["auto_prompts"] = settings.auto_prompts
+    if settings.compact:
+        job["compact"] = True
+    if settings.nproc > 1:
+        job["nproc"] = settings.nproc
     return job
 
 

@@ -90,7 +90,9 @@ class PROMPTGS_PT_train(PromptGSPanel, bpy.types.Panel):
         row.prop(settings, "iterations")
         col.prop(settings, "budget")
         col.prop(settings, "auto_prompts")
+        col.prop(settings, "compact")
         col.prop(settings, "backend")
+        col.prop(settings, "nproc")
         col.prop(settings, "snapshot_every")
         running = training.current_run() is not None and state.status in ("STARTING", "RUNNING", "CANCELLING")
         if running:

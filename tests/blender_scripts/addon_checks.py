@@ -163,7 +163,11 @@ def prompt_cube_box_in_job_file():
     for key in ("dataset", "out", "images", "iterations", "strategy", "backend", "snapshot_every", "seed"):
         assert key in job, key
     assert job["images"] == "images_4" and Path(job["dataset"]).name == "tumbler"
-    assert "budget" not in job and "auto_prompts" not in job  # 0 = off
+    assert not {"budget", "auto_prompts", "compact", "nproc"} & set(job)  # off / one process
+    scene().promptgs.compact, scene().promptgs.nproc = True, 2
+    job_with = addon("training").build_job(bpy.context, TMP / "job_check")
+    scene().promptgs.compact, scene().promptgs.nproc = False, 1
+    assert job_with["compact"] is True and job_with["nproc"] == 2, job_with
     # a flat cube is a clear error in the panel, not a traceback
     off.promptgs_enabled = True
     off.scale = (1.0, 0.0, 1.0)
