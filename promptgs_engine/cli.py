@@ -1,4 +1,4 @@
-"""The promptgs command line: train, eval, render, demo, dataset, bench, report, stability.
+"""The promptgs command line: train, eval, render, sfm, demo, dataset, bench, report, stability.
 
 Bad input ends with a one-line ``promptgs: error: …`` on stderr and exit code 2.
 """
@@ -25,8 +25,8 @@ def _budget(text: str) -> int | str:
 
 
 def _add_train(sub) -> None:
-    p = sub.add_parser("train", help="train Gaussians on a COLMAP dataset")
-    p.add_argument("dataset", nargs="?", help="dataset folder (images/ and sparse/0/)")
+    p = sub.add_parser("train", help="train Gaussians on a COLMAP dataset, or on photos or a video (sfm runs first)")
+    p.add_argument("dataset", nargs="?", help="dataset folder (images/ and sparse/0/), or a folder of photos or a video: sfm runs first into OUT/sfm")
     p.add_argument("--out", help="run folder to write")
     p.add_argument("--job", type=Path, help="JSON job file; its keys are these options (command-line options win)")
     p.add_argument("--images", help="images folder name inside the dataset (default: images)")
@@ -61,6 +61,9 @@ def _add_train(sub) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace a run already in --out")
     p.add_argument("--events", action="store_true", help="JSON-lines events on stdout (for the Blender add-on)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from .sfm.cli import add_sfm_options
+
+    add_sfm_options(p)
     p.set_defaults(func=cmd_train)
 
 
@@ -99,10 +102,24 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     cfg = train_config_from_args(args)
     events = EventWriter.stdout() if args.events else None
+    _sfm_first(cfg, args, events)
     metrics = run_training(cfg, resume=args.resume, overwrite=args.overwrite, events=events, quiet=args.quiet)
     if not args.events:
         _print_metrics(metrics)
     return 0
+
+
+def _sfm_first(cfg, args: argparse.Namespace, events) -> None:
+    """Photos or a video as DATASET: reconstruct them into OUT/sfm and train on that."""
+    from .sfm import needs_sfm, sfm_dataset_for_run
+    from .sfm.cli import sfm_options_from_args
+
+    dataset = Path(cfg.dataset).expanduser()
+    if not needs_sfm(dataset):
+        return
+    if cfg.images != "images":
+        raise PromptGSError(f"{dataset}: --images names a folder inside a COLMAP dataset; photos or a video are reconstructed first and take no --images")
+    cfg.dataset = str(sfm_dataset_for_run(dataset, Path(cfg.out), sfm_options_from_args(args), events=events, quiet=args.quiet))
 
 
 def _print_metrics(metrics: dict) -> None:
@@ -163,6 +180,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_train(sub)
     _add_eval(sub)
     _add_render(sub)
+    from .sfm.cli import add_parser as add_sfm
+
+    add_sfm(sub)
     from .bench.demo import add_parser as add_demo
     from .bench.grid import add_parser as add_bench
     from .bench.report import add_parser as add_report
