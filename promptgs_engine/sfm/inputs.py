@@ -53,8 +53,10 @@ def check_image(path: Path) -> tuple[int, int]:
     """(width, height) of an image whose pixels decode; DatasetError naming it otherwise."""
     try:
         with Image.open(path) as im:
+            size = int(im.width), int(im.height)
+            im.draft("RGB", (max(1, size[0] // 8), max(1, size[1] // 8)))  # JPEG: decode at 1/8 scale, quick
             im.load()
-            return int(im.width), int(im.height)
+            return size
     except UnidentifiedImageError:
         raise DatasetError(f"{path}: unreadable image file (not an image format that can be opened)") from None
     except (OSError, ValueError, SyntaxError) as e:

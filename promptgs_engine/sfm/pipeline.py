@@ -21,6 +21,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -28,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from ..data.images import image_size
 from ..errors import DatasetError, PromptGSError
 from ..events import EventWriter
 from .inputs import input_kind, list_images
@@ -143,7 +146,7 @@ def _exif_focal(path: Path) -> float | None:
 def _camera_mode(options: SfmOptions, kind: str, image_dir: Path, names: list[str]) -> str:
     """single or per-image. `auto`: one shared camera for a video, or for photos of one
     size and one EXIF focal length; one per image otherwise."""
-    sizes = {Image.open(image_dir / n).size for n in names}
+    sizes = {image_size(image_dir / n) for n in names}
     if options.camera_mode == "single":
         if len(sizes) > 1:
             raise PromptGSError(f"{image_dir}: --single-camera needs images of one size, found {len(sizes)} sizes ({', '.join(f'{w}x{h}' for w, h in sorted(sizes)[:3])}…)")
@@ -179,6 +182,31 @@ class _ColmapLog:
 
         lg = pycolmap.logging
         lg.minloglevel, lg.stderrthreshold, lg.logtostderr, lg.alsologtostderr = self.saved
+        return False
+
+
+class _Cancellable:
+    """Ctrl-C (SIGINT, the add-on's Cancel) during a long pycolmap call: ask pycolmap to
+    stop through its cancellation token, then raise KeyboardInterrupt when it returns.
+    Python runs the handler when pycolmap calls back (each registered image)."""
+
+    def __init__(self, pycolmap):
+        self.token = pycolmap.CancellationToken()
+        self.cancelled = False
+
+    def _handler(self, signum, frame) -> None:
+        self.cancelled = True
+        self.token.cancel()
+
+    def __enter__(self) -> "_Cancellable":
+        self.previous = signal.signal(signal.SIGINT, self._handler) if threading.current_thread() is threading.main_thread() else None
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)
+        if self.cancelled and (exc_type is None or issubclass(exc_type, InterruptedError)):
+            raise KeyboardInterrupt from None  # pycolmap ends a cancelled call with InterruptedError
         return False
 
 
@@ -278,12 +306,13 @@ def _map(pycolmap, db: Path, image_dir: Path, models_dir: Path, n: int, options:
         stage.note(f"model {models[0]}")
         stage.set(2)
 
-    with reporter.stage("mapping", n, "img", detail="incremental") as stage:
+    with reporter.stage("mapping", n, "img", detail="incremental") as stage, _Cancellable(pycolmap) as cancel:
         stage.set(0)
         recs = pycolmap.incremental_mapping(
             str(db), str(image_dir), str(models_dir), pipeline,
             initial_image_pair_callback=new_model,
             next_image_callback=lambda: stage.advance(1),
+            cancellation_token=cancel.token,
         )
     if not recs:
         return None, 0, None
@@ -370,7 +399,7 @@ def run_sfm(
         n = len(names)
         if n < 2:
             raise DatasetError(f"{image_dir}: SfM needs at least 2 images, found {n}")
-        longest = max(max(Image.open(image_dir / nm).size) for nm in names[:: max(1, n // 20)])
+        longest = max(max(image_size(image_dir / nm)) for nm in names[:: max(1, n // 20)])
         camera = _camera_mode(options, kind, image_dir, names)
         matcher = choose_matcher(options.matcher, n, kind)
         db = work / "database.db"
@@ -418,7 +447,10 @@ def run_sfm(
         events.emit("sfm_done", out=str(out), summary=summary)
         return summary
     except (Exception, KeyboardInterrupt) as exc:
-        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if isinstance(exc, KeyboardInterrupt):
+            message = "cancelled; the features and matches found so far are kept (run the same command to resume)"
+        else:
+            message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         events.emit("error", message=message, stage=stage_name, step=None, log=_newest_log(out / WORK))
         raise
 
