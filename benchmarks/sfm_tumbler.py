@@ -70,10 +70,18 @@ def main() -> None:
                     cmp = compare_centres(camera_centres(work / size / "sparse" / "0"), reference)
                     res["alignment"] = {k: cmp[k] for k in ("common", "max_error", "median_error")}
                 runs[size].append(res)
+                write_results(args, runs, load_before)  # after every run: an interrupted benchmark keeps what it measured
                 print(f"{size} run {r + 1}: {res['wall_s']:.1f} s ({res['cpu_s']:.1f} CPU s), {res['peak_rss_mib']:.0f} MiB, "
                       f"{s.get('images_registered')}/{s.get('images_given')} registered, alignment {res.get('alignment')}", flush=True)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    result = write_results(args, runs, load_before)
+    plot(args, result)
+    print(json.dumps({s: {k: v for k, v in d.items() if k != "runs"} for s, d in result["sizes"].items()}, indent=2))
+
+
+def write_results(args: argparse.Namespace, runs: dict[str, list[dict]], load_before: float) -> dict:
+    """Medians over the runs so far, written to sfm_tumbler.json."""
     result = {
         "scene": str(args.scene),
         "repeats": args.repeats,
@@ -83,6 +91,8 @@ def main() -> None:
         "sizes": {},
     }
     for size, rs in runs.items():
+        if not rs:
+            continue
         ok = [x for x in rs if x["summary"].get("status") == "ok"] or rs
         med = sorted(ok, key=lambda x: x["wall_s"])[len(ok) // 2]
         result["sizes"][size] = {
@@ -101,6 +111,12 @@ def main() -> None:
         }
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "sfm_tumbler.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+def plot(args: argparse.Namespace, result: dict) -> None:
+    runs = result["sizes"]
+    load_before = result["load_avg_before"]
     fig, ax = plt.subplots(figsize=(6, 3))
     stages = ["features", "matching", "mapping", "undistortion"]
     left = [0.0] * len(runs)
@@ -114,7 +130,6 @@ def main() -> None:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(args.out / "sfm_tumbler.png", dpi=120)
-    print(json.dumps({s: {k: v for k, v in d.items() if k != "runs"} for s, d in result["sizes"].items()}, indent=2))
 
 
 if __name__ == "__main__":
