@@ -13,6 +13,7 @@
 
 #include "project.h"
 #include "rasterize.h"
+#include "ssim.h"
 #include "stage_times.h"
 
 namespace {
@@ -261,6 +262,41 @@ std::vector<Tensor> project_bwd(Tensor means, Tensor quats, Tensor scales, Tenso
     return {v_means, v_quats, v_scales, v_sh};
 }
 
+promptgs::SsimShape ssim_shape(const Tensor& img, const Tensor& ref, const Tensor& window) {
+    TORCH_CHECK(img.dim() == 4, "img must be [B, H, W, C], got ", img.sizes());
+    check(img, "img", torch::kFloat32, {img.size(0), img.size(1), img.size(2), img.size(3)});
+    check(ref, "ref", torch::kFloat32, {img.size(0), img.size(1), img.size(2), img.size(3)});
+    check(window, "window", torch::kFloat32, {-1});
+    TORCH_CHECK(window.numel() % 2 == 1, "the SSIM window needs an odd number of taps");
+    return {img.size(0), img.size(1), img.size(2), img.size(3), static_cast<int>(window.numel() / 2)};
+}
+
+std::vector<Tensor> ssim_fwd(Tensor img, Tensor ref, Tensor window, bool need_grad) {
+    const promptgs::SsimShape s = ssim_shape(img, ref, window);
+    auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+    Tensor ssim = torch::empty_like(img);
+    Tensor partials = need_grad ? torch::empty({3, s.batch * s.channels, s.height, s.width}, f32) : torch::empty({0}, f32);
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::ssim_forward(s, img.data_ptr<float>(), ref.data_ptr<float>(), window.data_ptr<float>(),
+                               ssim.data_ptr<float>(), need_grad ? partials.data_ptr<float>() : nullptr);
+    }
+    return {ssim, partials};
+}
+
+Tensor ssim_bwd(Tensor grad, Tensor partials, Tensor img, Tensor ref, Tensor window) {
+    const promptgs::SsimShape s = ssim_shape(img, ref, window);
+    check(grad, "grad", torch::kFloat32, {s.batch, s.height, s.width, s.channels});
+    check(partials, "partials", torch::kFloat32, {3, s.batch * s.channels, s.height, s.width});
+    Tensor grad_img = torch::empty_like(img);
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::ssim_backward(s, grad.data_ptr<float>(), partials.data_ptr<float>(), img.data_ptr<float>(),
+                                ref.data_ptr<float>(), window.data_ptr<float>(), grad_img.data_ptr<float>());
+    }
+    return grad_img;
+}
+
 int num_threads() { return omp_get_max_threads(); }
 
 std::map<std::string, double> stage_times(bool reset, bool cpu) {
@@ -293,6 +329,11 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("stage_times", &stage_times, pybind11::arg("reset") = false, pybind11::arg("cpu") = false,
           "Seconds spent in each stage of the C++ passes since the last reset, {stage: seconds}: wall time, or "
           "with cpu=True the CPU time of the calling thread (resetting clears both).");
+    m.def("ssim_forward", &ssim_fwd,
+          "Per-pixel SSIM of img against ref ([B,H,W,C] float32) with a separable window (odd taps, zero "
+          "padding): (img, ref, window, need_grad) -> [ssim BxHxWxC, partials for ssim_backward or empty].");
+    m.def("ssim_backward", &ssim_bwd,
+          "dL/dimg from (dL/dssim, partials, img, ref, window) of ssim_forward.");
     m.def("num_threads", &num_threads, "OpenMP threads the rasterizer uses.");
     m.def("simd_variant", [] { return std::string(promptgs::tile_kernels().name); },
           "Instruction set of the tile kernels picked for this CPU (avx512, avx2, sse2 or native).");
