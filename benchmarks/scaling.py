@@ -7,7 +7,9 @@ Gaussians sized like a trained scene (``rasterizer.synthetic_scene``: a few pixe
 800×600, and proportionally more at larger sizes, since the focal length grows with the
 width). A training step here is the trainer's: render, (1 − 0.2)·L1 + 0.2·D-SSIM, backward,
 Adam on every parameter. ``forward`` is a render without gradients; ``backward`` is
-``loss.backward()`` alone, after a render with gradients.
+``loss.backward()`` alone, after a render with gradients. Each time is recorded as wall time
+and as the process's CPU time (all threads): on a machine busy with other jobs the second
+still measures the work.
 
     python benchmarks/scaling.py --out docs/results/scaling
 
@@ -62,13 +64,13 @@ def point(size: str, n: int, repeats: int, warmup: int) -> dict:
         with torch.no_grad():
             step.render()
 
-    def backward_only() -> float:
+    def backward_only() -> tuple[float, float]:
         out, _, info = step.render()
         info["means2d"].retain_grad()
         loss = loss_of(out)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         loss.backward()
-        dt = time.perf_counter() - t0
+        dt = (time.perf_counter() - t0, time.process_time() - c0)
         for p in step.params.values():
             p.grad = None
         return dt
@@ -80,10 +82,10 @@ def point(size: str, n: int, repeats: int, warmup: int) -> dict:
         loss_of(out).backward()
         step.opt.step()
 
-    def clock(fn) -> float:
-        t0 = time.perf_counter()
+    def clock(fn) -> tuple[float, float]:
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
-        return time.perf_counter() - t0
+        return time.perf_counter() - t0, time.process_time() - c0
 
     for _ in range(warmup):
         forward(), backward_only(), train_step()
@@ -95,7 +97,8 @@ def point(size: str, n: int, repeats: int, warmup: int) -> dict:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return {
         "size": size, "pixels": w * h, "n_gaussians": n,
-        **{k: {"median_s": statistics.median(v), "samples_s": v} for k, v in samples.items()},
+        **{k: {"median_s": statistics.median(w for w, _ in v), "cpu_median_s": statistics.median(c for _, c in v),
+               "samples_s": [w for w, _ in v], "cpu_samples_s": [c for _, c in v]} for k, v in samples.items()},
         "peak_rss_mb": peak, "rss_with_scene_mb": rss_scene, "step_memory_mb": peak - rss_scene,
         "load_average": os.getloadavg()[0],
     }
@@ -132,7 +135,10 @@ def plot(results: dict, path: Path) -> None:
         for kind in KINDS:
             ys = [p[kind]["median_s"] * 1e3 for p in pts]
             e = results[sweep]["exponents"][kind]
-            ax.loglog(xs, ys, "o-", color=colors[kind], label=f"{kind.replace('_', ' ')} (slope {e:.2f})")
+            ax.loglog(xs, ys, "o-", color=colors[kind], label=f"{kind.replace('_', ' ')}, wall (slope {e:.2f})")
+            ys = [p[kind]["cpu_median_s"] * 1e3 for p in pts]
+            e = results[sweep]["exponents"][f"{kind}_cpu"]
+            ax.loglog(xs, ys, "x:", color=colors[kind], label=f"{kind.replace('_', ' ')}, CPU time (slope {e:.2f})")
         ax.set_xlabel(xlabel)
         ax.set_ylabel("median time (ms)")
         ax.grid(True, which="both", alpha=0.3)
@@ -190,11 +196,13 @@ def main(argv: list[str] | None = None) -> int:
         for size, n in pts:
             p = run_point(size, n, args.repeats, args.warmup)
             done.append(p)
-            print(f"{sweep}: {size}, {n:,} Gaussians: " + ", ".join(f"{k} {p[k]['median_s'] * 1e3:.1f} ms" for k in KINDS)
+            print(f"{sweep}: {size}, {n:,} Gaussians: " + ", ".join(
+                f"{k} {p[k]['median_s'] * 1e3:.1f} ms (CPU {p[k]['cpu_median_s'] * 1e3:.1f})" for k in KINDS)
                   + f"; peak {p['peak_rss_mb']:.0f} MiB (step {p['step_memory_mb']:.0f} MiB); load {p['load_average']:.1f}")
         xkey = "n_gaussians" if sweep == "counts" else "pixels"
         xs = [p[xkey] for p in done]
         exps = {k: fit_exponent(xs, [p[k]["median_s"] for p in done]) for k in KINDS}
+        exps.update({f"{k}_cpu": fit_exponent(xs, [p[k]["cpu_median_s"] for p in done]) for k in KINDS})
         exps["step_memory_mb"] = fit_exponent(xs, [max(p["step_memory_mb"], 1e-3) for p in done])
         results[sweep] = {"points": done, "exponents": exps}
         print(f"{sweep}: fitted exponents " + ", ".join(f"{k} {v:.2f}" for k, v in exps.items()))
