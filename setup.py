@@ -25,6 +25,7 @@ setup(
                 "csrc/rasterize_backward.cpp",
                 "csrc/tile_kernels.cpp",
                 "csrc/project.cpp",
+                "csrc/ssim.cpp",
             ],
             extra_compile_args=extra_compile_args,
             extra_link_args=extra_link_args,

@@ -1,15 +1,20 @@
 // Python bindings of the CPU rasterizer (module promptgs_engine._C).
 //
 // Both passes take one image; the Python side (promptgs_engine/render/cpu.py) loops over
-// cameras. The forward returns the tile lists it built (tile_offsets, tile_ids of depth
-// ranks, tile_order = Gaussian index of each rank, tile_contrib = which entries composited
-// anything) so the backward reuses them.
+// cameras. The forward returns what it built (tile_offsets, tile_ids of depth ranks,
+// tile_order = Gaussian index of each rank, tile_rows = the tile rows each entry composited,
+// the depth-ranked Gaussian data and colours) so the backward reuses it.
 #include <torch/extension.h>
 
 #include <omp.h>
 
+#include <map>
+#include <string>
+
 #include "project.h"
 #include "rasterize.h"
+#include "ssim.h"
+#include "stage_times.h"
 
 namespace {
 
@@ -57,10 +62,16 @@ promptgs::RasterInputs make_inputs(const Tensor& means2d, const Tensor& conics, 
     return in;
 }
 
-Tensor vector_to_tensor(const std::vector<int32_t>& v) {
-    Tensor t = torch::empty({static_cast<int64_t>(v.size())}, torch::TensorOptions().dtype(torch::kInt32));
-    if (!v.empty()) std::memcpy(t.data_ptr<int32_t>(), v.data(), v.size() * sizeof(int32_t));
-    return t;
+// A tensor that takes over a vector's memory (no copy).
+template <typename T>
+Tensor vector_to_tensor(std::vector<T>&& v, std::vector<int64_t> shape, torch::ScalarType dtype) {
+    auto* owned = new std::vector<T>(std::move(v));
+    if (owned->empty()) {
+        delete owned;
+        return torch::empty(shape, torch::TensorOptions().dtype(dtype));
+    }
+    return torch::from_blob(
+        owned->data(), shape, [owned](void*) { delete owned; }, torch::TensorOptions().dtype(dtype));
 }
 
 std::vector<Tensor> forward(Tensor means2d, Tensor conics, Tensor colors, Tensor opacities, Tensor depths,
@@ -72,42 +83,64 @@ std::vector<Tensor> forward(Tensor means2d, Tensor conics, Tensor colors, Tensor
     Tensor out_alphas = torch::empty({height, width, 1}, f32);
     Tensor last_ids = torch::empty({height, width}, torch::TensorOptions().dtype(torch::kInt32));
     promptgs::TileBins bins;
+    Tensor rows;
     {
         pybind11::gil_scoped_release no_gil;
         bins = promptgs::bin_gaussians(in, depths.data_ptr<float>());
     }
-    Tensor contrib = torch::empty({static_cast<int64_t>(bins.ids.size())}, torch::TensorOptions().dtype(torch::kUInt8));
+    rows = torch::empty({static_cast<int64_t>(bins.ids.size())}, torch::TensorOptions().dtype(torch::kInt16));
     {
         pybind11::gil_scoped_release no_gil;
         promptgs::rasterize_forward(in, bins, out_colors.data_ptr<float>(), out_alphas.data_ptr<float>(),
-                                    last_ids.data_ptr<int32_t>(), contrib.data_ptr<uint8_t>());
+                                    last_ids.data_ptr<int32_t>(), reinterpret_cast<uint16_t*>(rows.data_ptr<int16_t>()));
     }
-    return {out_colors, out_alphas, last_ids, vector_to_tensor(bins.offsets), vector_to_tensor(bins.ids),
-            vector_to_tensor(bins.order), contrib};
+    const int64_t m = static_cast<int64_t>(bins.order.size()), n_isects = static_cast<int64_t>(bins.ids.size());
+    const int64_t n_offsets = static_cast<int64_t>(bins.offsets.size());
+    return {out_colors,
+            out_alphas,
+            last_ids,
+            vector_to_tensor(std::move(bins.offsets), {n_offsets}, torch::kInt32),
+            vector_to_tensor(std::move(bins.ids), {n_isects}, torch::kInt32),
+            vector_to_tensor(std::move(bins.order), {m}, torch::kInt32),
+            rows,
+            vector_to_tensor(std::move(bins.splats), {m, promptgs::kSplatFloats}, torch::kFloat32),
+            vector_to_tensor(std::move(bins.colors), {m, in.d}, torch::kFloat32)};
 }
 
-std::vector<Tensor> backward(Tensor means2d, Tensor conics, Tensor colors, Tensor opacities, Tensor radii,
-                             Tensor background, int64_t width, int64_t height, Tensor tile_offsets, Tensor tile_ids,
-                             Tensor tile_order, Tensor tile_contrib, Tensor out_alphas, Tensor last_ids, Tensor grad_colors, Tensor grad_alphas,
-                             bool absgrad) {
-    promptgs::RasterInputs in = make_inputs(means2d, conics, colors, opacities, radii, background, width, height);
-    const int64_t N = in.n, D = in.d;
-    promptgs::TileBins bins;
+std::vector<Tensor> backward(int64_t n, Tensor background, int64_t width, int64_t height, Tensor tile_offsets,
+                             Tensor tile_ids, Tensor tile_order, Tensor tile_rows, Tensor splats, Tensor sorted_colors,
+                             Tensor out_alphas, Tensor last_ids, Tensor grad_colors, Tensor grad_alphas, bool absgrad) {
+    TORCH_CHECK(sorted_colors.dim() == 2, "sorted_colors must be [M, D]");
+    const int64_t N = n, D = sorted_colors.size(1), M = tile_order.numel();
+    promptgs::TileBinsView bins;
     bins.tiles_x = static_cast<int>((width + promptgs::kTile - 1) / promptgs::kTile);
     bins.tiles_y = static_cast<int>((height + promptgs::kTile - 1) / promptgs::kTile);
     check(tile_offsets, "tile_offsets", torch::kInt32, {static_cast<int64_t>(bins.tiles_x) * bins.tiles_y + 1});
     check(tile_ids, "tile_ids", torch::kInt32, {-1});
-    check(tile_order, "tile_order", torch::kInt32, {-1});
-    TORCH_CHECK(tile_order.numel() <= N, "tile_order has more entries than Gaussians");
+    check(tile_order, "tile_order", torch::kInt32, {M});
+    TORCH_CHECK(M <= N, "tile_order has more entries than Gaussians");
+    check(tile_rows, "tile_rows", torch::kInt16, {tile_ids.numel()});
+    check(splats, "splats", torch::kFloat32, {M, promptgs::kSplatFloats});
+    check(sorted_colors, "sorted_colors", torch::kFloat32, {M, D});
+    if (background.numel() > 0) check(background, "background", torch::kFloat32, {D});
     check(out_alphas, "out_alphas", torch::kFloat32, {height, width, 1});
     check(last_ids, "last_ids", torch::kInt32, {height, width});
     check(grad_colors, "grad_colors", torch::kFloat32, {height, width, D});
     check(grad_alphas, "grad_alphas", torch::kFloat32, {height, width, 1});
-    bins.offsets.assign(tile_offsets.data_ptr<int32_t>(), tile_offsets.data_ptr<int32_t>() + tile_offsets.numel());
-    bins.ids.assign(tile_ids.data_ptr<int32_t>(), tile_ids.data_ptr<int32_t>() + tile_ids.numel());
-    bins.order.assign(tile_order.data_ptr<int32_t>(), tile_order.data_ptr<int32_t>() + tile_order.numel());
-    TORCH_CHECK(bins.offsets.back() == static_cast<int32_t>(bins.ids.size()), "tile_offsets do not match tile_ids");
-    check(tile_contrib, "tile_contrib", torch::kUInt8, {static_cast<int64_t>(bins.ids.size())});
+    TORCH_CHECK(tile_offsets.data_ptr<int32_t>()[tile_offsets.numel() - 1] == tile_ids.numel(),
+                "tile_offsets do not match tile_ids");
+    bins.m = M;
+    bins.offsets = tile_offsets.data_ptr<int32_t>();
+    bins.ids = tile_ids.data_ptr<int32_t>();
+    bins.order = tile_order.data_ptr<int32_t>();
+    bins.splats = reinterpret_cast<const promptgs::Splat*>(splats.data_ptr<float>());
+    bins.colors = sorted_colors.data_ptr<float>();
+    promptgs::RasterInputs in{};
+    in.background = background.numel() > 0 ? background.data_ptr<float>() : nullptr;
+    in.n = N;
+    in.d = D;
+    in.width = static_cast<int>(width);
+    in.height = static_cast<int>(height);
 
     auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
     Tensor g_means2d = torch::empty({N, 2}, f32);
@@ -118,7 +151,8 @@ std::vector<Tensor> backward(Tensor means2d, Tensor conics, Tensor colors, Tenso
     {
         pybind11::gil_scoped_release no_gil;
         promptgs::rasterize_backward(in, bins, out_alphas.data_ptr<float>(), last_ids.data_ptr<int32_t>(),
-                                     tile_contrib.data_ptr<uint8_t>(), grad_colors.data_ptr<float>(), grad_alphas.data_ptr<float>(),
+                                     reinterpret_cast<const uint16_t*>(tile_rows.data_ptr<int16_t>()),
+                                     grad_colors.data_ptr<float>(), grad_alphas.data_ptr<float>(),
                                      g_means2d.data_ptr<float>(), g_conics.data_ptr<float>(),
                                      g_colors.data_ptr<float>(), g_opac.data_ptr<float>(),
                                      absgrad ? g_abs.data_ptr<float>() : nullptr);
@@ -228,7 +262,52 @@ std::vector<Tensor> project_bwd(Tensor means, Tensor quats, Tensor scales, Tenso
     return {v_means, v_quats, v_scales, v_sh};
 }
 
+promptgs::SsimShape ssim_shape(const Tensor& img, const Tensor& ref, const Tensor& window) {
+    TORCH_CHECK(img.dim() == 4, "img must be [B, H, W, C], got ", img.sizes());
+    check(img, "img", torch::kFloat32, {img.size(0), img.size(1), img.size(2), img.size(3)});
+    check(ref, "ref", torch::kFloat32, {img.size(0), img.size(1), img.size(2), img.size(3)});
+    check(window, "window", torch::kFloat32, {-1});
+    TORCH_CHECK(window.numel() % 2 == 1, "the SSIM window needs an odd number of taps");
+    return {img.size(0), img.size(1), img.size(2), img.size(3), static_cast<int>(window.numel() / 2)};
+}
+
+std::vector<Tensor> ssim_fwd(Tensor img, Tensor ref, Tensor window, bool need_grad) {
+    const promptgs::SsimShape s = ssim_shape(img, ref, window);
+    auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+    Tensor ssim = torch::empty_like(img);
+    Tensor partials = need_grad ? torch::empty({3, s.batch * s.channels, s.height, s.width}, f32) : torch::empty({0}, f32);
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::ssim_forward(s, img.data_ptr<float>(), ref.data_ptr<float>(), window.data_ptr<float>(),
+                               ssim.data_ptr<float>(), need_grad ? partials.data_ptr<float>() : nullptr);
+    }
+    return {ssim, partials};
+}
+
+Tensor ssim_bwd(Tensor grad, Tensor partials, Tensor img, Tensor ref, Tensor window) {
+    const promptgs::SsimShape s = ssim_shape(img, ref, window);
+    check(grad, "grad", torch::kFloat32, {s.batch, s.height, s.width, s.channels});
+    check(partials, "partials", torch::kFloat32, {3, s.batch * s.channels, s.height, s.width});
+    Tensor grad_img = torch::empty_like(img);
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::ssim_backward(s, grad.data_ptr<float>(), partials.data_ptr<float>(), img.data_ptr<float>(),
+                                ref.data_ptr<float>(), window.data_ptr<float>(), grad_img.data_ptr<float>());
+    }
+    return grad_img;
+}
+
 int num_threads() { return omp_get_max_threads(); }
+
+std::map<std::string, double> stage_times(bool reset, bool cpu) {
+    std::map<std::string, double> out;
+    double(*seconds)[promptgs::kStageCount] = promptgs::stage_seconds();
+    for (int s = 0; s < promptgs::kStageCount; ++s) {
+        out[promptgs::stage_name(s)] = seconds[cpu ? 1 : 0][s];
+        if (reset) seconds[0][s] = seconds[1][s] = 0.0;
+    }
+    return out;
+}
 
 }  // namespace
 
@@ -236,14 +315,25 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "PromptGS CPU rasterizer: tile-based 3D Gaussian splatting forward and backward (OpenMP)";
     m.def("rasterize_forward", &forward,
           "Composite one image: (means2d, conics, colors, opacities, depths, radii, background, width, height) -> "
-          "[colors HxWxD, alphas HxWx1, last_ids HxW, tile_offsets, tile_ids, tile_order, tile_contrib].");
+          "[colors HxWxD, alphas HxWx1, last_ids HxW, tile_offsets, tile_ids, tile_order, tile_rows int16, "
+          "splats Mx8, sorted_colors MxD].");
     m.def("rasterize_backward", &backward,
-          "Gradients of one image -> [means2d Nx2, conics Nx3, colors NxD, opacities N, absgrad Nx2 or empty].");
+          "Gradients of one image: (n_gaussians, background, width, height, then the forward's tile_offsets, "
+          "tile_ids, tile_order, tile_rows, splats, sorted_colors, alphas, last_ids, then dL/dcolors, dL/dalphas, "
+          "absgrad) -> [means2d Nx2, conics Nx3, colors NxD, opacities N, absgrad Nx2 or empty].");
     m.def("project_forward", &project_fwd,
           "EWA projection (+ SH colours) for one camera: (means, quats, scales, opacities, sh or empty, sh_degree, "
           "viewmat, K, width, height, near, far, eps2d) -> [means2d, conics, depths, radii int32, colors or empty].");
     m.def("project_backward", &project_bwd,
           "Gradients of project_forward's outputs -> [v_means, v_quats, v_scales, v_sh or empty].");
+    m.def("stage_times", &stage_times, pybind11::arg("reset") = false, pybind11::arg("cpu") = false,
+          "Seconds spent in each stage of the C++ passes since the last reset, {stage: seconds}: wall time, or "
+          "with cpu=True the CPU time of the calling thread (resetting clears both).");
+    m.def("ssim_forward", &ssim_fwd,
+          "Per-pixel SSIM of img against ref ([B,H,W,C] float32) with a separable window (odd taps, zero "
+          "padding): (img, ref, window, need_grad) -> [ssim BxHxWxC, partials for ssim_backward or empty].");
+    m.def("ssim_backward", &ssim_bwd,
+          "dL/dimg from (dL/dssim, partials, img, ref, window) of ssim_forward.");
     m.def("num_threads", &num_threads, "OpenMP threads the rasterizer uses.");
     m.def("simd_variant", [] { return std::string(promptgs::tile_kernels().name); },
           "Instruction set of the tile kernels picked for this CPU (avx512, avx2, sse2 or native).");

@@ -1,5 +1,6 @@
 // EWA projection and SH colours, forward and backward (see project.h).
 #include "project.h"
+#include "stage_times.h"
 
 #include <algorithm>
 #include <cmath>
@@ -180,6 +181,7 @@ inline void camera_center(const Camera& cam, float c[3]) {
 
 void project_forward(const ProjectInputs& in, const Camera& cam, float* means2d, float* conics, float* depths,
                      int32_t* radii, float* colors) {
+    StageTimer timer(kStageProjectForward);
     float campos[3];
     camera_center(cam, campos);
     const int n_bases = (in.sh_degree + 1) * (in.sh_degree + 1);
@@ -237,6 +239,7 @@ void project_forward(const ProjectInputs& in, const Camera& cam, float* means2d,
 void project_backward(const ProjectInputs& in, const Camera& cam, const int32_t* radii, const float* v_means2d,
                       const float* v_conics, const float* v_depths, const float* v_colors, float* v_means,
                       float* v_quats, float* v_scales, float* v_sh) {
+    StageTimer timer(kStageProjectBackward);
     float campos[3];
     camera_center(cam, campos);
     const int n_bases = (in.sh_degree + 1) * (in.sh_degree + 1);

@@ -6,11 +6,13 @@
 //  - pixel (x, y) is sampled at its centre (x + 0.5, y + 0.5);
 //  - a Gaussian seen from a pixel has sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with
 //    (dx, dy) = mean2d - pixel and conic (a, b, c); alpha = min(0.999, o exp(-sigma));
-//  - it is skipped when sigma < 0 or alpha < 1/255; a pixel stops before the Gaussian
-//    that would bring its transmittance T to <= 1e-4; the background is added with the
-//    final T; the alpha image is 1 - T;
-//  - Gaussians with a zero radius are culled; the others are binned into 16x16 tiles by
-//    the box mean2d +- radii and composited in increasing depth order.
+//  - it is skipped when sigma < 0 or alpha < 1/255; a pixel stops before the Gaussian that
+//    would bring its transmittance T to <= 1e-4; the background is added with the final
+//    T; the alpha image is 1 - T;
+//  - Gaussians with a zero radius are culled; the others are composited in increasing
+//    depth order in every 16x16 tile that their ellipse alpha >= 1/255 reaches (which tiles
+//    and rows a Gaussian visits only decides where work is spent: every pixel applies the
+//    exact test above, so the image does not depend on it).
 #pragma once
 
 
@@ -46,19 +48,35 @@ struct alignas(32) Splat {
     float a, b, c;  // conic
     float opacity;
     float ry;       // half-height of the ellipse where alpha can reach 1/255 (rows it can touch)
-    float pad;
+    float cutoff;   // sigma_cutoff(opacity)
 };
+constexpr int kSplatFloats = 8;
+static_assert(sizeof(Splat) == kSplatFloats * sizeof(float), "Splat is 8 floats");
 
 // Depth-sorted Gaussian lists per tile.
 //
 // Visible Gaussians are numbered by depth rank (0 = nearest) and the tile lists hold these
 // ranks, so every tile walks forward through the depth-sorted copies of the Gaussian data
-// (sequential, prefetch-friendly memory access instead of random lookups).
+// (sequential, prefetch-friendly memory access instead of random lookups). The forward
+// pass builds the copies once; the backward pass reuses them.
 struct TileBins {
     int tiles_x = 0, tiles_y = 0;
     std::vector<int32_t> order;    // [M] Gaussian index of each depth rank
     std::vector<int32_t> offsets;  // [tiles + 1]
     std::vector<int32_t> ids;      // [n_isects] depth ranks, increasing (front to back) per tile
+    std::vector<Splat> splats;     // [M] Gaussian data by depth rank
+    std::vector<float> colors;     // [M, D] colours by depth rank
+};
+
+// The same arrays as views (what the backward reads; they may live in tensors).
+struct TileBinsView {
+    int tiles_x = 0, tiles_y = 0;
+    int64_t m = 0;                   // visible Gaussians (depth ranks)
+    const int32_t* order = nullptr;  // [M]
+    const int32_t* offsets = nullptr;
+    const int32_t* ids = nullptr;
+    const Splat* splats = nullptr;   // [M]
+    const float* colors = nullptr;   // [M, D]
 };
 
 // What the per-tile kernels read and write (one image).
@@ -71,11 +89,11 @@ struct TileArgs {
     float* out_colors = nullptr;  // [H, W, D]
     float* out_alphas = nullptr;  // [H, W]
     int32_t* out_last = nullptr;  // [H, W]
-    uint8_t* out_contrib = nullptr;  // [n_isects] 1 where the Gaussian composited a pixel of the tile
+    uint16_t* out_rows = nullptr;  // [n_isects] bit r: the Gaussian composited a pixel of tile row r
     // backward inputs
     const float* alphas = nullptr;       // [H, W] forward alphas
     const int32_t* last_ids = nullptr;   // [H, W] forward last contributors
-    const uint8_t* contrib = nullptr;    // [n_isects] forward out_contrib
+    const uint16_t* rows = nullptr;      // [n_isects] forward out_rows
     const float* grad_colors = nullptr;  // [H, W, D]
     const float* grad_alphas = nullptr;  // [H, W]
 };
@@ -84,6 +102,25 @@ struct TileArgs {
 // opacity (1), |mean2d| (2), then the D colour channels.
 constexpr int kGradFixed = 8;
 
+// Per-thread scratch of the forward tile kernel; grows to the longest tile list it meets.
+struct TileScratch {
+    std::vector<Splat> splats;      // the tile's Gaussians in list order
+    std::vector<float> colors;      // [n, D] their colours
+    std::vector<uint16_t> masks;    // [n] tile rows each one reaches
+    std::vector<int32_t> row_list;  // per tile row, the list positions of those reaching it
+    std::vector<float> acc;         // D * kTile floats (colour sums for any channel count)
+    void reserve(int n, int64_t d) {
+        const size_t un = static_cast<size_t>(n);
+        if (splats.size() < un) {
+            splats.resize(un);
+            masks.resize(un);
+            row_list.resize(un * kTile);
+        }
+        if (colors.size() < un * static_cast<size_t>(d)) colors.resize(un * static_cast<size_t>(d));
+        if (acc.size() < static_cast<size_t>(d) * kTile) acc.resize(static_cast<size_t>(d) * kTile);
+    }
+};
+
 // Per-tile kernels for one instruction set, picked once at load time from what the CPU
 // supports (AVX-512, AVX2+FMA or the baseline; see tile_kernels.cpp).
 //
@@ -91,9 +128,9 @@ constexpr int kGradFixed = 8;
 // entry 0 takes any channel count. Use kernel_for() to pick.
 constexpr int kMaxChannelsFixed = 5;
 struct TileKernels {
-    // Composites tile (x0, y0) from ranks ids[start, end); acc is D*256 floats of scratch.
+    // Composites tile (x0, y0) from ranks ids[start, end).
     using Forward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int end, int x0,
-                             int y0, float* acc);
+                             int y0, TileScratch& scratch);
     // Backward for tile (x0, y0); scratch dcol and buf are D*256 floats, vcol D*16 floats;
     // adds per-rank gradients into G (stride kGradFixed + D).
     using Backward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int x0, int y0,
@@ -118,27 +155,24 @@ struct RasterInputs {
     int width, height;
 };
 
-// Bins visible Gaussians into tiles, sorted by depth ([N] sort keys).
+// Sorts the visible Gaussians by depth, makes their depth-ranked copies and bins them into
+// tiles ([N] sort keys).
 TileBins bin_gaussians(const RasterInputs& in, const float* depths);
 
 // Composites one image. Outputs: colours [H, W, D], alphas [H, W], last_ids [H, W] (index
-// into bins.ids of the last Gaussian composited at each pixel, -1 if none), contrib
-// [n_isects] (1 where a tile-list entry composited at least one pixel; the backward skips
-// the others).
+// into bins.ids of the last Gaussian composited at each pixel, -1 if none), rows
+// [n_isects] (per tile-list entry, the tile rows where it composited a pixel; the backward
+// visits only those).
 void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_colors,
-                       float* out_alphas, int32_t* last_ids, uint8_t* contrib);
+                       float* out_alphas, int32_t* last_ids, uint16_t* rows);
 
 // Gradients for one image, given the forward outputs and dL/d(colours [H,W,D], alphas [H,W]).
 // Outputs (overwritten): means2d [N,2], conics [N,3], colors [N,D], opacities [N] and,
 // when grad_abs_means2d is not null, the per-pixel sums of |dL/dmeans2d| [N,2].
-void rasterize_backward(const RasterInputs& in, const TileBins& bins, const float* out_alphas,
-                        const int32_t* last_ids, const uint8_t* contrib, const float* grad_colors,
+void rasterize_backward(const RasterInputs& in, const TileBinsView& bins, const float* out_alphas,
+                        const int32_t* last_ids, const uint16_t* rows, const float* grad_colors,
                         const float* grad_alphas,
                         float* grad_means2d, float* grad_conics, float* grad_colors_out,
                         float* grad_opacities, float* grad_abs_means2d);
-
-// Gaussian data in depth-rank order: splats [M] and colours [M, D].
-void gather_sorted(const RasterInputs& in, const TileBins& bins, std::vector<Splat>& splats,
-                   std::vector<float>& colors);
 
 }  // namespace promptgs

@@ -15,36 +15,35 @@
 #include <cmath>
 
 #include "rasterize.h"
+#include "stage_times.h"
 
 namespace promptgs {
 
-void rasterize_backward(const RasterInputs& in, const TileBins& bins, const float* out_alphas,
-                        const int32_t* last_ids, const uint8_t* contrib, const float* grad_colors,
+void rasterize_backward(const RasterInputs& in, const TileBinsView& bins, const float* out_alphas,
+                        const int32_t* last_ids, const uint16_t* rows, const float* grad_colors,
                         const float* grad_alphas,
                         float* grad_means2d, float* grad_conics, float* grad_colors_out, float* grad_opacities,
                         float* grad_abs_means2d) {
     const int64_t N = in.n, D = in.d;
-    std::vector<Splat> splats;
-    std::vector<float> colors;
-    gather_sorted(in, bins, splats, colors);
-    const int64_t M = static_cast<int64_t>(bins.order.size());
+    const int64_t M = bins.m;
     const int n_tiles = bins.tiles_x * bins.tiles_y;
     const int64_t stride = kGradFixed + D;
     const int n_threads = omp_get_max_threads();
     std::vector<std::vector<float>> thread_grads(n_threads);
     TileArgs args;
-    args.ids = bins.ids.data();
+    args.ids = bins.ids;
     args.d = D;
     args.width = in.width;
     args.height = in.height;
     args.background = in.background;
     args.alphas = out_alphas;
     args.last_ids = last_ids;
-    args.contrib = contrib;
+    args.rows = rows;
     args.grad_colors = grad_colors;
     args.grad_alphas = grad_alphas;
     const TileKernels::Backward backward = tile_kernels().backward[kernel_for(D)];
 
+    StageTimer blend_timer(kStageBlendBackward);
 #pragma omp parallel num_threads(n_threads)
     {
         std::vector<float>& gbuf = thread_grads[omp_get_thread_num()];
@@ -56,10 +55,14 @@ void rasterize_backward(const RasterInputs& in, const TileBins& bins, const floa
         for (int tile = 0; tile < n_tiles; ++tile) {
             const int start = bins.offsets[tile], end = bins.offsets[tile + 1];
             if (start == end) continue;
-            backward(args, splats.data(), colors.data(), start, (tile % bins.tiles_x) * kTile,
+            backward(args, bins.splats, bins.colors, start, (tile % bins.tiles_x) * kTile,
                              (tile / bins.tiles_x) * kTile, dcol.data(), buf.data(), vcol.data(), gbuf.data());
         }
-
+    }
+    blend_timer.stop();
+    StageTimer reduce_timer(kStageReduce);
+#pragma omp parallel num_threads(n_threads)
+    {
 #pragma omp for schedule(static)
         for (int64_t i = 0; i < N; ++i) {  // Gaussians that no tile saw get zero gradients
             grad_means2d[2 * i] = grad_means2d[2 * i + 1] = 0.f;

@@ -1,5 +1,5 @@
-// Forward pass of the CPU rasterizer: depth sort, tile binning (exact ellipse/tile test),
-// depth-ranked copies of the Gaussian data, then the per-tile compositing kernels of
+// Forward pass of the CPU rasterizer: depth sort, depth-ranked copies of the Gaussian data,
+// tile binning (exact ellipse/tile test), then the per-tile compositing kernels of
 // tile_kernels.inc in parallel over tiles.
 #include <omp.h>
 
@@ -7,6 +7,7 @@
 #include <cmath>
 
 #include "rasterize.h"
+#include "stage_times.h"
 
 namespace promptgs {
 
@@ -22,46 +23,6 @@ inline uint32_t float_key(float f) {
 struct TileRect {
     int32_t x0, y0, x1, y1;  // tiles [x0, x1) x [y0, y1)
 };
-
-}  // namespace
-
-void gather_sorted(const RasterInputs& in, const TileBins& bins, std::vector<Splat>& splats,
-                   std::vector<float>& colors) {
-    const int64_t M = static_cast<int64_t>(bins.order.size());
-    const int64_t D = in.d;
-    splats.resize(static_cast<size_t>(M));
-    colors.resize(static_cast<size_t>(M * D));
-#pragma omp parallel for schedule(static)
-    for (int64_t j = 0; j < M; ++j) {
-        const int64_t i = bins.order[j];
-        Splat s;
-        s.x = in.means2d[2 * i];
-        s.y = in.means2d[2 * i + 1];
-        s.a = in.conics[3 * i];
-        s.b = in.conics[3 * i + 1];
-        s.c = in.conics[3 * i + 2];
-        s.opacity = in.opacities[i];
-        float ex, ey;
-        s.ry = ellipse_extent(s.a, s.b, s.c, sigma_cutoff(s.opacity), ex, ey) ? ey + 1e-3f
-                                                                              : static_cast<float>(in.radii[2 * i + 1]);
-        s.pad = 0.f;
-        splats[j] = s;
-        for (int64_t k = 0; k < D; ++k) colors[j * D + k] = in.colors[i * D + k];
-    }
-}
-
-namespace {
-
-// Minimum of q(dx, dy) = 0.5 a dx^2 + b dx dy + 0.5 c dy^2 (a, c > 0) over a rectangle.
-inline float min_over_rect(float a, float b, float c, float dx0, float dx1, float dy0, float dy1) {
-    if (dx0 <= 0.f && dx1 >= 0.f && dy0 <= 0.f && dy1 >= 0.f) return 0.f;
-    auto q = [&](float dx, float dy) { return 0.5f * a * dx * dx + b * dx * dy + 0.5f * c * dy * dy; };
-    float best = q(dx0, std::clamp(-b * dx0 / c, dy0, dy1));
-    best = std::min(best, q(dx1, std::clamp(-b * dx1 / c, dy0, dy1)));
-    best = std::min(best, q(std::clamp(-b * dy0 / a, dx0, dx1), dy0));
-    best = std::min(best, q(std::clamp(-b * dy1 / a, dx0, dx1), dy1));
-    return best;
-}
 
 // LSD radix sort of (key, value) pairs by key, stable (3 passes of 11 bits).
 void radix_sort(std::vector<uint32_t>& keys, std::vector<int32_t>& values) {
@@ -82,6 +43,29 @@ void radix_sort(std::vector<uint32_t>& keys, std::vector<int32_t>& values) {
     }
 }
 
+// Pixel columns [k0, k1] (clipped to [0, width)) whose centres lie within the ellipse
+// q(u, v) = 0.5 a u^2 + b u v + 0.5 c v^2 <= L for some v in [va, vb] (u, v: offsets of a
+// pixel centre from the mean). This is the exact x-extent of the ellipse inside a band
+// of pixel rows, as Speedy-Splat's AccuTile computes it per tile row: along the ellipse
+// the right edge u(v) = (-b v + sqrt(2 a L - det v^2)) / a is concave, largest at the
+// ellipse's x-extreme (v = -b ex / c) and otherwise at the band end nearer to it; the left
+// edge mirrors it. Computed in double and widened by 1e-3 px, so it can only include
+// more columns than the per-pixel test in float needs, never fewer.
+inline void band_columns(double x, double a, double b, double c, double L, double ex, double va, double vb,
+                         int width, int& k0, int& k1) {
+    const double det = a * c - b * b;
+    auto right = [&](double v) { return (-b * v + std::sqrt(std::max(2.0 * a * L - det * v * v, 0.0))) / a; };
+    auto left = [&](double v) { return (-b * v - std::sqrt(std::max(2.0 * a * L - det * v * v, 0.0))) / a; };
+    const double v_right = -b * ex / c, v_left = b * ex / c;  // where the ellipse reaches u = +ex and -ex
+    const double umax = (v_right < va) ? right(va) : (v_right > vb) ? right(vb) : ex;
+    const double umin = (v_left < va) ? left(va) : (v_left > vb) ? left(vb) : -ex;
+    // pixel k has its centre at k + 0.5, i.e. u = k + 0.5 - x
+    const double lo = std::ceil(std::max(x + umin - 0.5 - 1e-3, -1.0));
+    const double hi = std::floor(std::min(x + umax - 0.5 + 1e-3, static_cast<double>(width)));
+    k0 = std::max(0, static_cast<int>(lo));
+    k1 = std::min(width - 1, static_cast<int>(hi));
+}
+
 }  // namespace
 
 TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
@@ -89,69 +73,85 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
     bins.tiles_x = (in.width + kTile - 1) / kTile;
     bins.tiles_y = (in.height + kTile - 1) / kTile;
     const int n_tiles = bins.tiles_x * bins.tiles_y;
+    const int64_t N = in.n, D = in.d;
     const int32_t* radii = in.radii;
     const float* m2 = in.means2d;
     const float* cn = in.conics;
 
-    // Visible Gaussians sorted front to back (stable, so ties keep index order). Filling
-    // the tile lists in this order leaves every list sorted without a per-tile sort.
+    // 1. Per Gaussian, in index order (sequential reads): its record for the tile loops and
+    // the box of pixel centres where its alpha can reach 1/255 (the exact ellipse, tighter
+    // than the integer radii), as tiles. An empty box (or a zero radius) leaves it out.
+    StageTimer sort_timer(kStageSort);
+    struct Prepared {
+        Splat s;
+        TileRect r;
+    };
+    std::vector<Prepared> prep(static_cast<size_t>(N));
+#pragma omp parallel for schedule(static)
+    for (int64_t i = 0; i < N; ++i) {
+        Prepared& p = prep[i];
+        p.r = TileRect{0, 0, 0, 0};
+        if (!(radii[2 * i] > 0 && radii[2 * i + 1] > 0)) continue;
+        Splat& s = p.s;
+        s.x = m2[2 * i];
+        s.y = m2[2 * i + 1];
+        s.a = cn[3 * i];
+        s.b = cn[3 * i + 1];
+        s.c = cn[3 * i + 2];
+        s.opacity = in.opacities[i];
+        s.cutoff = sigma_cutoff(s.opacity);
+        float ex, ey;
+        if (ellipse_extent(s.a, s.b, s.c, s.cutoff, ex, ey)) {
+            s.ry = ey + 1e-3f;
+        } else {
+            ex = static_cast<float>(radii[2 * i]);
+            ey = s.ry = static_cast<float>(radii[2 * i + 1]);
+        }
+        const int px0 = std::max(0, static_cast<int>(std::ceil(std::max(s.x - ex - 0.5f, -1.f))));
+        const int px1 = std::min(in.width - 1, static_cast<int>(std::floor(std::min(s.x + ex - 0.5f, 1e9f))));
+        const int py0 = std::max(0, static_cast<int>(std::ceil(std::max(s.y - ey - 0.5f, -1.f))));
+        const int py1 = std::min(in.height - 1, static_cast<int>(std::floor(std::min(s.y + ey - 0.5f, 1e9f))));
+        if (px0 <= px1 && py0 <= py1) p.r = TileRect{px0 / kTile, py0 / kTile, px1 / kTile + 1, py1 / kTile + 1};
+    }
+
+    // 2. Those that reach a tile, sorted front to back (stable, so ties keep index order).
+    // Filling the tile lists in this order leaves every list sorted without a per-tile sort.
     std::vector<uint32_t> keys;
     std::vector<int32_t> order;
-    keys.reserve(static_cast<size_t>(in.n));
-    order.reserve(static_cast<size_t>(in.n));
-    for (int64_t i = 0; i < in.n; ++i) {
-        if (radii[2 * i] > 0 && radii[2 * i + 1] > 0) {
+    keys.reserve(static_cast<size_t>(N));
+    order.reserve(static_cast<size_t>(N));
+    for (int64_t i = 0; i < N; ++i) {
+        if (prep[i].r.x1 > prep[i].r.x0) {
             keys.push_back(float_key(depths[i]));
             order.push_back(static_cast<int32_t>(i));
         }
     }
     radix_sort(keys, order);
     const int64_t m = static_cast<int64_t>(order.size());
+    sort_timer.stop();
 
-    // Tile range of each Gaussian: the pixels whose centres lie in the box of the ellipse
-    // where its alpha can reach 1/255 (tighter than the integer radii), clipped to the image.
+    // 3. Depth-ranked copies of what the tile loops and the binning below read.
+    StageTimer gather_timer(kStageGather);
+    bins.splats.resize(static_cast<size_t>(m));
+    bins.colors.resize(static_cast<size_t>(m * D));
     std::vector<TileRect> rects(static_cast<size_t>(m));
 #pragma omp parallel for schedule(static)
     for (int64_t j = 0; j < m; ++j) {
         const int64_t i = order[j];
-        const float x = m2[2 * i], y = m2[2 * i + 1];
-        float ex, ey;
-        if (!ellipse_extent(cn[3 * i], cn[3 * i + 1], cn[3 * i + 2], sigma_cutoff(in.opacities[i]), ex, ey)) {
-            ex = static_cast<float>(radii[2 * i]);
-            ey = static_cast<float>(radii[2 * i + 1]);
-        }
-        const int px0 = std::max(0, static_cast<int>(std::ceil(std::max(x - ex - 0.5f, -1.f))));
-        const int px1 = std::min(in.width - 1, static_cast<int>(std::floor(std::min(x + ex - 0.5f, 1e9f))));
-        const int py0 = std::max(0, static_cast<int>(std::ceil(std::max(y - ey - 0.5f, -1.f))));
-        const int py1 = std::min(in.height - 1, static_cast<int>(std::floor(std::min(y + ey - 0.5f, 1e9f))));
-        TileRect r;
-        if (px0 > px1 || py0 > py1) {
-            r.x0 = r.x1 = r.y0 = r.y1 = 0;
-        } else {
-            r.x0 = px0 / kTile;
-            r.x1 = px1 / kTile + 1;
-            r.y0 = py0 / kTile;
-            r.y1 = py1 / kTile + 1;
-        }
-        rects[j] = r;
+        bins.splats[j] = prep[i].s;
+        rects[j] = prep[i].r;
+        for (int64_t k = 0; k < D; ++k) bins.colors[j * D + k] = in.colors[i * D + k];
     }
+    gather_timer.stop();
 
-    // Whether Gaussian j's ellipse reaches tile (tx, ty); only tested when its box spans
-    // several tiles (a diagonal or elongated ellipse misses some of them).
-    auto hits = [&](int64_t j, const TileRect& r, int tx, int ty) {
-        if (r.x1 - r.x0 == 1 && r.y1 - r.y0 == 1) return true;
-        const int64_t i = order[j];
-        const float x = m2[2 * i], y = m2[2 * i + 1];
-        const float X0 = tx * kTile + 0.5f, X1 = std::min(tx * kTile + kTile, in.width) - 0.5f;
-        const float Y0 = ty * kTile + 0.5f, Y1 = std::min(ty * kTile + kTile, in.height) - 0.5f;
-        return min_over_rect(cn[3 * i], cn[3 * i + 1], cn[3 * i + 2], X0 - x, X1 - x, Y0 - y, Y1 - y) <=
-               sigma_cutoff(in.opacities[i]);
-    };
-
-    // Count and fill in parallel: each thread takes a contiguous slice of the depth order,
-    // and its entries go after those of the threads before it in every tile.
+    // 4. Tile lists. One pass finds the (tile, rank) pairs of each thread's contiguous slice
+    // of the depth order (a Gaussian whose box spans several tiles gets, per tile row, only
+    // the tiles its ellipse reaches) and counts them per tile; the pairs are then scattered,
+    // each thread's after those of the threads before it in every tile.
+    StageTimer bin_timer(kStageBin);
     const int n_threads = omp_get_max_threads();
-    std::vector<std::vector<int32_t>> counts(n_threads, std::vector<int32_t>(n_tiles, 0));
+    std::vector<std::vector<int32_t>> counts(n_threads);
+    std::vector<std::vector<int32_t>> pair_tiles(n_threads), pair_ranks(n_threads);
     bins.offsets.assign(n_tiles + 1, 0);
 #pragma omp parallel num_threads(n_threads)
     {
@@ -159,11 +159,38 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
         const int nt = omp_get_num_threads();
         const int64_t j0 = m * tid / nt, j1 = m * (tid + 1) / nt;
         std::vector<int32_t>& cnt = counts[tid];
+        std::vector<int32_t>& tiles = pair_tiles[tid];
+        std::vector<int32_t>& ranks = pair_ranks[tid];
+        cnt.assign(n_tiles, 0);
+        tiles.reserve(static_cast<size_t>(3 * (j1 - j0)));
+        ranks.reserve(static_cast<size_t>(3 * (j1 - j0)));
+        auto emit = [&](int tile, int64_t j) {
+            cnt[tile]++;
+            tiles.push_back(tile);
+            ranks.push_back(static_cast<int32_t>(j));
+        };
         for (int64_t j = j0; j < j1; ++j) {
             const TileRect& r = rects[j];
-            for (int ty = r.y0; ty < r.y1; ++ty)
-                for (int tx = r.x0; tx < r.x1; ++tx)
-                    if (hits(j, r, tx, ty)) cnt[ty * bins.tiles_x + tx]++;
+            if (r.x1 - r.x0 == 1) {  // one column of tiles: every tile of the box is reached
+                for (int ty = r.y0; ty < r.y1; ++ty) emit(ty * bins.tiles_x + r.x0, j);
+                continue;
+            }
+            const Splat& s = bins.splats[j];
+            const double a = s.a, b = s.b, c = s.c, L = s.cutoff;
+            const double ex = std::sqrt(2.0 * L * c / (a * c - b * b));
+            const bool ellipse = a > 0.0 && c > 0.0 && std::isfinite(ex);  // else the box came from the radii
+            for (int ty = r.y0; ty < r.y1; ++ty) {
+                if (r.y1 - r.y0 == 1 || !ellipse) {  // one row of tiles (the box is exact), or no ellipse
+                    for (int tx = r.x0; tx < r.x1; ++tx) emit(ty * bins.tiles_x + tx, j);
+                    continue;
+                }
+                const double va = ty * kTile + 0.5 - s.y;
+                const double vb = std::min(ty * kTile + kTile, in.height) - 0.5 - s.y;
+                int k0, k1;
+                band_columns(s.x, a, b, c, L, ex, va, vb, in.width, k0, k1);
+                const int tx0 = std::max(r.x0, k0 / kTile), tx1 = std::min(r.x1 - 1, k1 / kTile);
+                for (int tx = tx0; tx <= tx1 && k0 <= k1; ++tx) emit(ty * bins.tiles_x + tx, j);
+            }
         }
 #pragma omp barrier
 #pragma omp single
@@ -180,22 +207,14 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
             bins.offsets[n_tiles] = total;
             bins.ids.resize(static_cast<size_t>(total));
         }
-        for (int64_t j = j0; j < j1; ++j) {
-            const TileRect& r = rects[j];
-            for (int ty = r.y0; ty < r.y1; ++ty)
-                for (int tx = r.x0; tx < r.x1; ++tx)
-                    if (hits(j, r, tx, ty)) bins.ids[cnt[ty * bins.tiles_x + tx]++] = static_cast<int32_t>(j);
-        }
+        for (size_t p = 0; p < tiles.size(); ++p) bins.ids[cnt[tiles[p]]++] = ranks[p];
     }
     bins.order = std::move(order);
     return bins;
 }
 
 void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_colors, float* out_alphas,
-                       int32_t* last_ids, uint8_t* contrib) {
-    std::vector<Splat> splats;
-    std::vector<float> colors;
-    gather_sorted(in, bins, splats, colors);
+                       int32_t* last_ids, uint16_t* rows) {
     const int n_tiles = bins.tiles_x * bins.tiles_y;
     TileArgs args;
     args.ids = bins.ids.data();
@@ -206,15 +225,16 @@ void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_
     args.out_colors = out_colors;
     args.out_alphas = out_alphas;
     args.out_last = last_ids;
-    args.out_contrib = contrib;
+    args.out_rows = rows;
     const TileKernels::Forward forward = tile_kernels().forward[kernel_for(in.d)];
+    StageTimer timer(kStageBlendForward);
 #pragma omp parallel
     {
-        std::vector<float> acc(static_cast<size_t>(in.d) * kTilePixels);
+        TileScratch scratch;
 #pragma omp for schedule(dynamic, 1)
         for (int tile = 0; tile < n_tiles; ++tile) {
-            forward(args, splats.data(), colors.data(), bins.offsets[tile], bins.offsets[tile + 1],
-                            (tile % bins.tiles_x) * kTile, (tile / bins.tiles_x) * kTile, acc.data());
+            forward(args, bins.splats.data(), bins.colors.data(), bins.offsets[tile], bins.offsets[tile + 1],
+                    (tile % bins.tiles_x) * kTile, (tile / bins.tiles_x) * kTile, scratch);
         }
     }
 }

@@ -14,10 +14,15 @@
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
 #define PROMPTGS_X86_VARIANTS 1
 #endif
+#if defined(__x86_64__) || defined(__SSE2__)
+#include <immintrin.h>  // a few mask tests (any_lane); GCC declares every level's intrinsics here
+#endif
 
 #ifdef PROMPTGS_X86_VARIANTS
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wpsabi"
+// GCC 12's own AVX-512 headers trip this on their undefined-source idiom (__Y = __Y).
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 
 #pragma GCC push_options
 #pragma GCC target("arch=x86-64-v4")

@@ -62,3 +62,26 @@ def test_resize_mask_keeps_a_one_pixel_object_when_downscaling():
     small = metrics.resize_mask(ids, 4, 4)
     assert small.shape == (4, 4)
     assert int(small[1, 1]) == 3 and int((small > 0).sum()) == 1
+
+
+def test_fused_cpu_ssim_matches_torch_ssim_and_its_gradient():
+    """The C++ SSIM (float32 on the CPU) against the torch version: values and gradients,
+    on sizes that are not multiples of anything and with more than one image and channel."""
+    from promptgs_engine.losses import _fused_ssim_applies, ssim_map_torch
+
+    g = torch.Generator().manual_seed(0)
+    for shape in ((2, 23, 37, 3), (1, 9, 5, 4)):
+        img = torch.rand(*shape, generator=g)
+        ref = (img + 0.2 * torch.randn(*shape, generator=g)).clamp(0, 1)
+        assert _fused_ssim_applies(img, ref)
+        weights = torch.randn(*shape, generator=g)
+        a = img.clone().requires_grad_()
+        b = img.double().clone().requires_grad_()
+        fused = losses.ssim_map(a, ref)
+        torch_ssim = ssim_map_torch(b, ref.double())
+        assert (fused.double() - torch_ssim).abs().max() < 2e-5
+        (fused * weights).sum().backward()
+        (torch_ssim * weights.double()).sum().backward()
+        scale = b.grad.abs().max()
+        assert scale > 0
+        assert (a.grad.double() - b.grad).abs().max() < 2e-4 * scale

@@ -55,13 +55,13 @@ class RasterizeCPU(torch.autograd.Function):
         for c in range(C):
             bg = _f32(backgrounds[c]) if backgrounds is not None else torch.empty(0)
             opac = _f32(opacities[c]) if per_camera_opacity else shared_opac
-            args = (_f32(means2d[c]), _f32(conics[c]), _f32(colors[c]), opac, radii[c].contiguous(), bg)
             img, alpha, *bins = _C.rasterize_forward(
-                args[0], args[1], args[2], opac, _f32(depths[c]), args[4], bg, width, height
+                _f32(means2d[c]), _f32(conics[c]), _f32(colors[c]), opac, _f32(depths[c]), radii[c].contiguous(), bg,
+                width, height,
             )
             out_colors.append(img)
             out_alphas.append(alpha)
-            saved.append((args, alpha, bins))
+            saved.append((bg, alpha, bins))
         ctx.saved_per_camera = saved
         ctx.width, ctx.height, ctx.absgrad = width, height, absgrad
         ctx.has_bg = backgrounds is not None
@@ -74,12 +74,11 @@ class RasterizeCPU(torch.autograd.Function):
         (means2d,) = ctx.saved_tensors
         _C = _ext()
         g_m, g_cn, g_col, g_op, g_abs, g_bg = [], [], [], [], [], []
-        for c, (args, alpha, bins) in enumerate(ctx.saved_per_camera):
-            m2, cn, col, opac, radii, bg = args
-            last_ids, tile_offsets, tile_ids, tile_order, tile_contrib = bins
+        n = means2d.shape[-2]
+        for c, (bg, alpha, bins) in enumerate(ctx.saved_per_camera):
+            last_ids, *tiles = bins  # tile_offsets, tile_ids, tile_order, tile_rows, splats, sorted_colors
             gm, gcn, gcol, gop, gab = _C.rasterize_backward(
-                m2, cn, col, opac, radii, bg, ctx.width, ctx.height, tile_offsets, tile_ids, tile_order, tile_contrib,
-                alpha, last_ids,
+                n, bg, ctx.width, ctx.height, *tiles, alpha, last_ids,
                 _f32(grad_colors[c]), _f32(grad_alphas[c]), ctx.absgrad,
             )
             g_m.append(gm)

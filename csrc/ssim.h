@@ -1,0 +1,28 @@
+// Per-pixel SSIM with a separable Gaussian window, forward and backward, fused in C++.
+//
+// Same definition as promptgs_engine/losses.py (`ssim_map_torch`, which stays the
+// reference): per channel, the five local statistics mu_x, mu_y, E[x^2], E[y^2], E[xy] are
+// blurred with the window (zero padding, output the size of the input), and
+// SSIM = (2 mu_x mu_y + C1)(2 cov_xy + C2) / ((mu_x^2 + mu_y^2 + C1)(var_x + var_y + C2)).
+// The backward gives the gradient with respect to the first image only.
+#pragma once
+
+#include <cstdint>
+
+namespace promptgs {
+
+struct SsimShape {
+    int64_t batch, height, width, channels;  // images are [B, H, W, C], channels last
+    int radius;                              // window of 2 * radius + 1 taps
+};
+
+// ssim [B,H,W,C]; when partials is not null, also dSSIM/d(mu_x, E[x^2], E[xy]) per pixel,
+// planar [3][B*C][H][W], for ssim_backward.
+void ssim_forward(const SsimShape& s, const float* img, const float* ref, const float* window, float* ssim,
+                  float* partials);
+
+// dL/dimg [B,H,W,C] from dL/dssim [B,H,W,C] and the forward's partials.
+void ssim_backward(const SsimShape& s, const float* grad, const float* partials, const float* img, const float* ref,
+                   const float* window, float* grad_img);
+
+}  // namespace promptgs
