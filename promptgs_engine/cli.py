@@ -1,4 +1,4 @@
-"""The promptgs command line: train, eval, render, sfm, demo, dataset, bench, report, stability.
+"""The promptgs command line: train, eval, render, propose, sfm, demo, dataset, bench, report, stability.
 
 Bad input ends with a one-line ``promptgs: error: …`` on stderr and exit code 2.
 """
@@ -40,6 +40,11 @@ def _add_train(sub) -> None:
     p.add_argument("--prompts", help="prompt file (JSON boxes in dataset coordinates)")
     p.add_argument("--center-prompt", action="store_true", default=None, help="one unit box at the origin (the paper's Ours*)")
     p.add_argument("--auto-prompts", type=int, help="add the error field's top N proposals as prompts")
+    p.add_argument(
+        "--propose-prompts", action="store_true", default=None,
+        help="PromptGS: after a warm-up, add prompt boxes where several views agree the render misses a small "
+        "object (written to RUN/proposals.json; see `promptgs propose`)",
+    )
     p.add_argument("--no-sky", dest="sky", action="store_false", default=None, help="no far background shell at the start (SfM points only)")
     p.add_argument(
         "--progressive", action=argparse.BooleanOptionalAction, default=None,
@@ -69,7 +74,7 @@ def _add_train(sub) -> None:
 
 _TRAIN_KEYS = (
     "dataset", "out", "images", "iterations", "backend", "strategy", "seed", "resolution_scale",
-    "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "sky", "progressive", "screen_filter", "antialiased", "snapshot_every", "checkpoint_every",
+    "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "propose_prompts", "sky", "progressive", "screen_filter", "antialiased", "snapshot_every", "checkpoint_every",
 )
 
 
@@ -187,6 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench.grid import add_parser as add_bench
     from .bench.report import add_parser as add_report
     from .bench.stability import add_parser as add_stability
+    from .propose import add_parser as add_propose
     from .synthetic.cli import add_parser as add_dataset
 
     add_demo(sub)
@@ -194,6 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench(sub)
     add_report(sub)
     add_stability(sub)
+    add_propose(sub)
     return parser
 
 

@@ -56,6 +56,7 @@ class TrainConfig:
     prompts: Any = None  # path of a prompt file, or the prompt object itself
     center_prompt: bool = False
     auto_prompts: int = 0
+    propose_prompts: bool = False  # add prompts where views agree the render misses a small object (propose.py)
     progressive: bool | None = None  # None: on for promptgs, off for the baselines
     screen_filter: float | None = None  # px² at full size; None: PROMPTGS_SCREEN_FILTER for promptgs, else BASELINE_SCREEN_FILTER
     antialiased: bool = False  # opacity compensation of the screen filter (--antialiased), any strategy
@@ -104,6 +105,11 @@ class TrainConfig:
             or not 0 < self.screen_filter < 100
         ):
             raise PromptGSError(f"--screen-filter must be a variance in pixels² between 0 and 100 (3DGS: 0.3), got {self.screen_filter!r}")
+        if not isinstance(self.propose_prompts, bool):
+            raise PromptGSError(f"propose_prompts must be true or false, got {self.propose_prompts!r}")
+        if self.propose_prompts and self.strategy != "promptgs":
+            raise PromptGSError(f"--propose-prompts needs --strategy promptgs (got {self.strategy!r}); "
+                                "`promptgs propose RUN` proposes from any finished run")
         if not isinstance(self.antialiased, bool):
             raise PromptGSError(f"antialiased must be true or false, got {self.antialiased!r}")
         self.downscale  # validates resolution_scale

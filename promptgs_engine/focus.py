@@ -117,6 +117,11 @@ class PromptFocus:
         sched = trainer.schedule
         if self.auto_prompts:
             self.auto_prompt_step = sched.refine_start_iter + (sched.refine_stop_iter - sched.refine_start_iter) // 4
+        self.proposer = None
+        if cfg.propose_prompts:
+            from .propose import TrainingProposer
+
+            self.proposer = TrainingProposer(trainer, self.full_cameras)
         self.resample_every = max(2 * sched.refine_every, 20)
         self.progressive = cfg.progressive if cfg.progressive is not None else True
         cam0 = self.full_cameras[0]
@@ -266,6 +271,8 @@ class PromptFocus:
                     continue
             log.info("step %d: %d automatic prompts from the error field", step, len(visible))
             self.set_prompts(self.prompts + visible)
+        if self.proposer is not None and self.proposer.is_step(step):
+            self.set_prompts(self.prompts + self.proposer.run(step, self.prompts))
         if self.prompts and self.is_resample_step(step):
             self.resample(step)
 
@@ -315,7 +322,10 @@ class PromptFocus:
     # -- outputs ----------------------------------------------------------------------
 
     def field_arrays(self) -> dict[str, Any]:
-        return self.field.to_arrays(self.prompts) if len(self.field) else {}
+        arrays = self.field.to_arrays(self.prompts) if len(self.field) else {}
+        if self.proposer is not None:
+            arrays.update(self.proposer.arrays())
+        return arrays
 
     def state_dict(self) -> dict:
         return {"prompts": [p.to_dict() for p in self.prompts], "field": self.field.state_dict()}

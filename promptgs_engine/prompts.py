@@ -47,6 +47,8 @@ __all__ = [
 ]
 
 _KEYS = ("center", "size", "rotation_wxyz", "weight")
+# Keys a proposal file (`proposals`) adds to an entry; training reads the box and ignores them.
+_PROPOSAL_KEYS = ("confidence", "evidence")
 
 
 class CameraLike(Protocol):
@@ -209,9 +211,14 @@ def prompts_from_json(obj: Any, source: str = "prompts") -> list[PromptBox]:
         missing = [k for k in ("center", "size", "rotation_wxyz") if k not in entry]
         if missing:
             raise PromptError(f"{where}: missing key(s) {', '.join(repr(k) for k in missing)}")
-        unknown = sorted(set(entry) - set(_KEYS))
+        unknown = sorted(set(entry) - set(_KEYS) - set(_PROPOSAL_KEYS))
         if unknown:
             raise PromptError(f"{where}: unknown key(s) {', '.join(repr(k) for k in unknown)}")
+        conf = entry.get("confidence", 1.0)
+        if not _is_number(conf) or not 0.0 <= conf <= 1.0:
+            raise PromptError(f"{where}: 'confidence' must be a number in [0, 1], got {json.dumps(conf, default=str)}")
+        if not isinstance(entry.get("evidence", {}), dict):
+            raise PromptError(f"{where}: 'evidence' must be an object")
         weight = entry.get("weight", 1.0)
         problem = _box_problem(entry["center"], entry["size"], entry["rotation_wxyz"], weight)
         if problem:

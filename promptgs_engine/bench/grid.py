@@ -12,7 +12,8 @@ Methods: ``3dgs``, ``absgs``, ``promptgs-center`` (one unit box at the origin, t
 paper's Ours*), ``promptgs-1`` (one box: the dataset's ``prompts_1.json``, else one box
 around its suggested prompts), ``promptgs-2`` (the dataset's ``prompts_2.json``, else its
 suggested prompts, a box per object group), ``promptgs-auto`` (prompts proposed by the
-error field). A prompt method on a scene without those prompts is not applicable and is
+error field), ``promptgs-propose`` (no box drawn: prompts proposed where several views
+agree the render misses a small object, ``--propose-prompts``). A prompt method on a scene without those prompts is not applicable and is
 skipped with a note.
 """
 
@@ -34,7 +35,7 @@ from ..prompts import PromptBox, prompts_from_json, save_prompts
 from .process import NAN, OK, classify, error_message, run_logged
 
 SCHEMA = "promptgs-bench/1"
-METHODS = ("3dgs", "absgs", "promptgs-center", "promptgs-1", "promptgs-2", "promptgs-auto")
+METHODS = ("3dgs", "absgs", "promptgs-center", "promptgs-1", "promptgs-2", "promptgs-auto", "promptgs-propose")
 AUTO_PROMPTS = 3  # proposals taken from the error field by promptgs-auto
 
 
@@ -201,6 +202,8 @@ def job_for(cell: Cell, out: Path) -> dict | None:
         job["center_prompt"] = True
     elif cell.prompt == "auto":
         job["auto_prompts"] = AUTO_PROMPTS
+    elif cell.prompt == "propose":
+        job["propose_prompts"] = True
     elif cell.prompt in ("1", "2"):
         run_dir.parent.mkdir(parents=True, exist_ok=True)
         prompts = prompt_file_for(cell, run_dir)

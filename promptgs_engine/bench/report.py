@@ -41,7 +41,7 @@ STAT_KEYS = (
 
 # Fixed method order, display names and styles, the same in every chart and table:
 # baselines grey / green, PromptGS variants in warm colours.
-METHOD_ORDER = ("3dgs", "absgs", "promptgs-center", "promptgs-1", "promptgs-2", "promptgs-auto")
+METHOD_ORDER = ("3dgs", "absgs", "promptgs-center", "promptgs-1", "promptgs-2", "promptgs-auto", "promptgs-propose")
 METHOD_NAMES = {
     "3dgs": "3DGS",
     "absgs": "AbsGS",
@@ -49,6 +49,7 @@ METHOD_NAMES = {
     "promptgs-1": "PromptGS, 1 box",
     "promptgs-2": "PromptGS, a box per group",
     "promptgs-auto": "PromptGS, auto prompts",
+    "promptgs-propose": "PromptGS, proposed prompts",
 }
 METHOD_STYLES = {  # method -> (colour, marker)
     "3dgs": ("#7f7f7f", "o"),
@@ -57,8 +58,9 @@ METHOD_STYLES = {  # method -> (colour, marker)
     "promptgs-1": ("#f07c19", "D"),
     "promptgs-2": ("#d62728", "v"),
     "promptgs-auto": ("#8c2d04", "P"),
+    "promptgs-propose": ("#9467bd", "*"),
 }
-_OTHER_STYLES = [("#1f77b4", "X"), ("#9467bd", "*"), ("#17becf", "h"), ("#e377c2", "p")]
+_OTHER_STYLES = [("#1f77b4", "X"), ("#17becf", "h"), ("#e377c2", "p"), ("#bcbd22", "d")]
 
 # Crop sheet layout (pixels): a label strip on the left, a title strip on top, and a gap
 # before every crop. Crop (row i, column j) starts at

@@ -1,0 +1,196 @@
+"""Proposing prompts from a run: render every training view at full size, gather the
+residual evidence (`residuals`), keep what several views agree on (`proposals`).
+
+Used by ``promptgs propose RUN`` (a finished run, or a snapshot of one still training)
+and by the trainer's ``--propose-prompts`` (`TrainingProposer`, called from
+`focus.PromptFocus`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+from pathlib import Path
+from typing import Callable, Sequence
+
+import torch
+from tqdm import tqdm
+
+from .data import Camera
+from .errors import PromptError
+from .prompts import PromptBox, check_visible
+from .proposals import ProposalSet, ProposalSettings, load_proposals, propose
+from .residuals import ResidualSettings, ViewEvidence, view_evidence
+
+log = logging.getLogger("promptgs.propose")
+
+PROPOSALS_FILE = "proposals.json"
+# When the trainer proposes, as fractions of the densification window (refine start to
+# stop): just before an opacity reset would be best, but the window differs per run, so
+# these are fixed fractions. Resampling then has most of the window left.
+PROPOSE_AT = (0.3,)
+# The trainer adds proposals of at least this confidence (the file keeps them all).
+TRAIN_MIN_CONFIDENCE = 0.4
+
+RenderFn = Callable[[Camera], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]  # rgb [H,W,3], depth [H,W], alpha [H,W]
+
+
+def gather_evidence(
+    render_fn: RenderFn,
+    cameras: Sequence[Camera],
+    settings: ResidualSettings = ResidualSettings(),
+    quiet: bool = True,
+) -> list[ViewEvidence]:
+    """Each camera rendered (``render_fn``) and compared with its image."""
+    out = []
+    for cam in tqdm(cameras, desc="evidence", disable=quiet, unit="view"):
+        rgb, depth, alpha = render_fn(cam)
+        out.append(view_evidence(cam.load_image(), rgb, depth, alpha, settings))
+    return out
+
+
+def propose_views(
+    render_fn: RenderFn,
+    cameras: Sequence[Camera],
+    residual_settings: ResidualSettings = ResidualSettings(),
+    settings: ProposalSettings = ProposalSettings(),
+    quiet: bool = True,
+) -> ProposalSet:
+    evidence = gather_evidence(render_fn, cameras, residual_settings, quiet)
+    settings = dataclasses.replace(settings, detection_threshold=residual_settings.threshold)
+    result = propose(cameras, evidence, [c.name for c in cameras], settings)
+    result.info["residual_settings"] = residual_settings.__dict__
+    return result
+
+
+def visible_boxes(boxes: Sequence[PromptBox], cameras: Sequence[Camera]) -> list[PromptBox]:
+    """The boxes that some camera shows (a prompt no camera sees is an error for training)."""
+    keep = []
+    for box in boxes:
+        try:
+            check_visible([box], cameras)
+            keep.append(box)
+        except PromptError:
+            continue
+    return keep
+
+
+def params_renderer(params, backend: str, screen_filter: float, rasterize_mode: str, sh_degree: int | None = None) -> RenderFn:
+    """A `RenderFn` drawing ``params`` (a Gaussian ParameterDict) with RGB and expected depth."""
+    from .gaussians import sh_degree_of
+    from .render import render
+
+    degree = sh_degree_of(params) if sh_degree is None else sh_degree
+
+    @torch.no_grad()
+    def draw(cam: Camera):
+        device = params["means"].device
+        out, alpha, _ = render(
+            params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
+            torch.cat([params["sh0"], params["shN"]], dim=1),
+            cam.world_to_camera[None].to(device), cam.K[None].to(device), cam.width, cam.height,
+            sh_degree=degree, backend=backend, eps2d=screen_filter, rasterize_mode=rasterize_mode, render_mode="RGB+ED",
+        )
+        return out[0, ..., :3].clamp(0, 1).cpu(), out[0, ..., 3].cpu(), alpha[0, ..., 0].cpu()
+
+    return draw
+
+
+def propose_run(run_dir: Path, out: Path | None = None, snapshot: Path | None = None, quiet: bool = False) -> tuple[ProposalSet, Path]:
+    """Proposals for a run folder (its ``point_cloud.ply``, or ``snapshot``), written to
+    ``out`` (default ``RUN/proposals.json``)."""
+    from .data import load_colmap_scene
+    from .evaluation import load_run
+
+    cfg, params = load_run(run_dir, snapshot)
+    scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
+    cameras = [c.downscaled(cfg.downscale) for c in scene.train_cameras]
+    backend = "cuda" if cfg.backend in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
+    draw = params_renderer(params, backend, cfg.effective_screen_filter, cfg.rasterize_mode)
+    result = propose_views(draw, cameras, quiet=quiet)
+    result.info.update({"run": str(Path(run_dir).resolve()), "dataset": str(cfg.dataset),
+                        "snapshot": str(snapshot) if snapshot else None, "resolution": [cameras[0].width, cameras[0].height]})
+    path = Path(out) if out is not None else Path(run_dir) / PROPOSALS_FILE
+    path.parent.mkdir(parents=True, exist_ok=True)
+    result.save(path)
+    return result, path
+
+
+class TrainingProposer:
+    """The trainer's ``--propose-prompts``: at the steps of `PROPOSE_AT` it renders every
+    training view at full size, proposes, writes ``RUN/proposals.json`` and returns the
+    new boxes (weight = confidence) that no existing prompt already holds."""
+
+    def __init__(self, trainer, cameras: Sequence[Camera]):
+        self.trainer = trainer
+        self.cameras = list(cameras)
+        sched = trainer.schedule
+        window = sched.refine_stop_iter - sched.refine_start_iter
+        self.steps = sorted({sched.refine_start_iter + int(f * window) for f in PROPOSE_AT})
+        self.result: ProposalSet | None = None
+        path = Path(trainer.out) / PROPOSALS_FILE
+        if path.is_file():  # a resumed run: the snapshot keeps showing what was proposed
+            try:
+                self.result = _result_from_file(path)
+            except (PromptError, ValueError, KeyError, json.JSONDecodeError):
+                self.result = None
+
+    def is_step(self, step: int) -> bool:
+        return step in self.steps
+
+    def run(self, step: int, existing: Sequence[PromptBox]) -> list[PromptBox]:
+        t = self.trainer
+        draw = params_renderer(t.params, t.backend, t.screen_filter, t.cfg.rasterize_mode, t.active_sh_degree(step))
+        result = propose_views(draw, self.cameras)
+        result.info["step"] = step
+        result.save(Path(t.out) / PROPOSALS_FILE)
+        self.result = result
+        boxes = visible_boxes(result.boxes(TRAIN_MIN_CONFIDENCE), self.cameras)
+        if existing:
+            from .prompts import contains_any
+
+            centers = torch.tensor([b.center for b in boxes], dtype=torch.float64).reshape(-1, 3)
+            held = contains_any(list(existing), centers)
+            boxes = [b for b, h in zip(boxes, held.tolist()) if not h]
+        log.info("step %d: %d proposed prompts (%d rejected hypotheses; candidates per view: median %d)",
+                 step, len(boxes), len(result.rejected), int(sorted(result.n_candidates.values())[len(result.n_candidates) // 2]))
+        return boxes
+
+    def arrays(self) -> dict:
+        return self.result.to_arrays() if self.result is not None else {}
+
+
+def _result_from_file(path: Path) -> ProposalSet:
+    """A ProposalSet holding only the boxes of a proposal file (for snapshot arrays)."""
+    from .proposals import Proposal
+
+    boxes, conf = load_proposals(path)
+    props = [Proposal(b, c, b.center, [], 0, 0, 0.0, 0.0) for b, c in zip(boxes, conf)]
+    return ProposalSet(props, [], {}, {})
+
+
+# -- command line ---------------------------------------------------------------------------
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("propose", help="propose prompt boxes where the run misses small objects that several views show")
+    p.add_argument("run", type=Path, help="a run folder (its point_cloud.ply, or --snapshot)")
+    p.add_argument("--out", type=Path, help=f"proposal file to write (default RUN/{PROPOSALS_FILE})")
+    p.add_argument("--snapshot", type=Path, help="propose from this snapshot .npz of a run still training (DC colour only)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_propose)
+
+
+def cmd_propose(args: argparse.Namespace) -> int:
+    result, path = propose_run(args.run, args.out, args.snapshot, quiet=args.quiet)
+    reasons: dict[str, int] = {}
+    for r in result.rejected:
+        reasons[r.reason] = reasons.get(r.reason, 0) + 1
+    print(f"{len(result.proposals)} proposals, rejected {reasons or 'none'}, "
+          f"{sum(len(v) for v in result.unmatched.values())} unmatched strong candidates; wrote {path}")
+    for i, p in enumerate(result.proposals):
+        print(f"  {i}: confidence {p.confidence:.2f}, centre {[round(v, 3) for v in p.box.center]}, "
+              f"seen by {p.n_seeing} views, supported by {p.n_supporting}")
+    return 0

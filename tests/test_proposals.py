@@ -1,0 +1,206 @@
+"""Proposed prompts: per-view residual evidence and multi-view consistency.
+
+The scene is drawn analytically, so each test takes well under a second: a ground plane
+(z = 0) with a smooth texture, seen by a ring of cameras. The "render" (what a trained
+model draws) is the smooth texture alone; the "image" adds what the model misses:
+small dark spots painted on the ground (texture detail: consistent across views, but on
+the surface) and/or a drone floating above it.
+"""
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from promptgs_engine.bench.toy_scene import look_at
+from promptgs_engine.errors import PromptError
+from promptgs_engine.prompts import load_prompts, prompts_from_json
+from promptgs_engine.proposals import load_proposals, propose
+from promptgs_engine.residuals import ResidualSettings, view_evidence
+
+W, H, FOCAL = 128, 96, 110.0
+DRONE = np.array([0.4, -0.3, 0.9])
+
+
+def ring_cameras(n=12, radius=4.0, height=2.5):
+    K = np.array([[FOCAL, 0, W / 2], [0, FOCAL, H / 2], [0, 0, 1.0]])
+    cams = []
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        c = np.array([radius * math.cos(a), radius * math.sin(a), height + 0.3 * math.sin(3 * a)])
+        cams.append(SimpleNamespace(name=f"v{i:02d}", width=W, height=H, K=torch.tensor(K, dtype=torch.float32),
+                                    world_to_camera=torch.tensor(look_at(c, np.array([0.0, 0.0, 0.4])), dtype=torch.float32)))
+    return cams
+
+
+SPOTS = np.random.default_rng(1).uniform(-2.2, 2.2, size=(90, 2))  # dark spots painted on the ground
+
+
+def draw(cam, spots=False, drone=None):
+    """(image [H, W, 3], depth [H, W]) of the ground plane, optionally with dark spots on
+    it and a bright drone (a world point drawn as a 0.7 px blob) in front of it."""
+    w2c = cam.world_to_camera.double().numpy()
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    C = -R.T @ t
+    jj, ii = np.mgrid[0:H, 0:W]
+    pix = np.stack([ii + 0.5, jj + 0.5, np.ones_like(ii, dtype=float)], -1)
+    d = (pix @ np.linalg.inv(cam.K.double().numpy()).T) @ R  # world direction per unit depth
+    s = -C[2] / np.minimum(d[..., 2], -1e-6)  # depth to the plane z = 0
+    x, y = C[0] + s * d[..., 0], C[1] + s * d[..., 1]
+    sky = d[..., 2] >= -1e-3
+    base = np.stack([0.45 + 0.1 * np.sin(1.3 * x) * np.cos(0.9 * y), 0.5 + 0.08 * np.sin(0.7 * x + 1.1 * y), 0.35 + 0.05 * np.cos(y)], -1)
+    if spots:
+        dist2 = ((x[..., None] - SPOTS[:, 0]) ** 2 + (y[..., None] - SPOTS[:, 1]) ** 2).min(-1)
+        base = base * (1 - 0.8 * np.exp(-dist2 / (2 * 0.03**2)))[..., None]
+    img = np.where(sky[..., None], np.array([0.6, 0.7, 0.9]), base)
+    depth = np.where(sky, np.inf, s)
+    if drone is not None:
+        p = R @ drone + t
+        u, v = FOCAL * p[0] / p[2] + W / 2, FOCAL * p[1] / p[2] + H / 2
+        a = 0.95 * np.exp(-((ii + 0.5 - u) ** 2 + (jj + 0.5 - v) ** 2) / (2 * 0.7**2))
+        img = img * (1 - a[..., None]) + a[..., None] * np.array([1.0, 0.9, 0.1])
+    return torch.tensor(img, dtype=torch.float32), torch.tensor(depth, dtype=torch.float32)
+
+
+def evidence_for(cams, spots=False, drone=None, moving=False, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for cam in cams:
+        where = drone
+        if moving:  # a different place in every view
+            where = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-1.5, 1.5), rng.uniform(0.5, 1.5)])
+        image, _ = draw(cam, spots, where)
+        render, depth = draw(cam)
+        out.append(view_evidence(image, render, depth))
+    return out
+
+
+def test_a_blob_the_render_misses_is_a_candidate_at_its_pixel():
+    cam = ring_cameras()[0]
+    image, _ = draw(cam, drone=DRONE)
+    render, depth = draw(cam)
+    ev = view_evidence(image, render, depth)
+    p = cam.world_to_camera.double().numpy()
+    q = p[:3, :3] @ DRONE + p[:3, 3]
+    uv = np.array([FOCAL * q[0] / q[2] + W / 2, FOCAL * q[1] / q[2] + H / 2])
+    assert len(ev) >= 1
+    assert np.linalg.norm(ev.uv[0] - uv) < 0.5  # the strongest candidate, sub-pixel
+    assert ev.strength[0] > 10
+    # The same blob drawn by the render and missing from the image is not a missing object.
+    assert len(view_evidence(render, image, depth)) == 0
+    # Nothing is missing: no candidate.
+    assert len(view_evidence(render, render, depth)) == 0
+
+
+def test_texture_the_render_blurs_everywhere_gives_no_strong_candidate():
+    gen = torch.Generator().manual_seed(0)
+    texture = torch.rand(H, W, 3, generator=gen)
+    blurred = torch.nn.functional.avg_pool2d(texture.permute(2, 0, 1)[None], 3, 1, 1)[0].permute(1, 2, 0)
+    ev = view_evidence(texture, blurred)
+    # The local reconstruction error is as large as any peak of it: no candidate strong
+    # enough to seed a proposal (weaker ones may only support one other views seed).
+    assert int((ev.strength >= ResidualSettings().threshold).sum()) == 0
+    assert len(ev) < 16
+
+
+def test_a_drone_planted_over_textured_ground_is_proposed_and_the_texture_is_not():
+    cams = ring_cameras()
+    result = propose(cams, evidence_for(cams, spots=True, drone=DRONE))
+    confident = [p for p in result.proposals if p.confidence >= 0.4]
+    assert len(confident) == 1
+    best = confident[0]
+    assert np.linalg.norm(np.array(best.point) - DRONE) < 0.03
+    assert best.box.contains(torch.tensor(DRONE[None]))[0]
+    assert best.n_supporting >= 10 and best.confidence > 0.6
+    assert max(best.box.size) < 0.5  # a small box around one object, not a region
+    # Each observation names a view and the candidate pixel that supports the box.
+    assert {o.view for o in best.observations} <= {c.name for c in cams} and len(best.observations) >= 10
+    # The spots on the ground are small, high-contrast and consistent across views, but
+    # lie on the render's surface: none is proposed.
+    for p in result.proposals:
+        assert np.linalg.norm(np.array(p.point) - DRONE) < 0.05 or p.confidence < 0.4, p
+    assert any(r.reason == "surface" for r in result.rejected)
+
+
+def test_texture_only_ground_gets_no_proposal():
+    cams = ring_cameras()
+    result = propose(cams, evidence_for(cams, spots=True))
+    assert [p for p in result.proposals if p.confidence >= 0.4] == []
+
+
+def test_a_moving_object_is_reported_not_boxed():
+    cams = ring_cameras()
+    result = propose(cams, evidence_for(cams, drone=DRONE, moving=True))
+    assert [p for p in result.proposals if p.confidence >= 0.4] == []
+    # Its strong residual blobs are listed, per view, as candidates nothing accounts for.
+    assert sum(len(v) for v in result.unmatched.values()) >= len(cams) // 2
+
+
+def test_proposal_file_round_trips_as_a_prompt_file(tmp_path):
+    cams = ring_cameras()
+    result = propose(cams, evidence_for(cams, drone=DRONE))
+    path = tmp_path / "proposals.json"
+    result.save(path)
+    boxes = load_prompts(path)  # what `promptgs train --prompts` reads
+    assert boxes == [p.box for p in result.proposals] and boxes
+    again, conf = load_proposals(path)
+    assert again == boxes and conf == pytest.approx([p.confidence for p in result.proposals], abs=1e-4)
+    data = json.loads(path.read_text())
+    entry = data["prompts"][0]
+    assert entry["weight"] == pytest.approx(entry["confidence"], abs=1e-4)
+    obs = entry["evidence"]["observations"][0]
+    assert set(obs) == {"view", "uv", "strength", "reprojection_px"}
+    assert data["schema"] == "promptgs-proposals/1" and "rejected" in data and "unmatched" in data
+    arrays = result.to_arrays()
+    assert arrays["proposal_centers"].shape == (len(boxes), 3) and arrays["proposal_confidence"].dtype == np.float32
+    with pytest.raises(PromptError, match="confidence"):
+        prompts_from_json({"prompts": [{**entry, "confidence": 1.5}]}, source="p.json")
+    with pytest.raises(PromptError, match="unknown key"):
+        prompts_from_json({"prompts": [{**entry, "confidense": 0.5}]}, source="p.json")
+
+
+def test_training_proposes_prompts_at_the_toy_drones_and_propose_reads_the_run(toy, tmp_path, capsys):
+    """`--propose-prompts` on the toy scene (no box drawn): the proposals written at the
+    proposal step become the run's prompts and sit on true drones; the snapshot carries
+    them; `promptgs propose RUN` proposes from the finished run."""
+    from promptgs_engine.cli import main
+    from promptgs_engine.config import TrainConfig
+    from promptgs_engine.propose import TRAIN_MIN_CONFIDENCE
+    from promptgs_engine.train import Trainer
+
+    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=200, strategy="promptgs",
+                      propose_prompts=True, checkpoint_every=0)
+    trainer = Trainer(cfg, quiet=True)
+    assert trainer.focus.prompts == []
+    trainer.out.mkdir()
+    trainer.train()
+    drones = torch.tensor([d["center"] for d in json.loads((toy / "scene.json").read_text())["drones"]], dtype=torch.float64)
+    prompts = trainer.focus.prompts
+    assert prompts
+    for box in prompts:  # each proposed box holds a drone
+        assert bool(box.contains(drones).any()), box
+    boxes, conf = load_proposals(tmp_path / "run" / "proposals.json")
+    assert prompts == [b for b, c in zip(boxes, conf) if c >= TRAIN_MIN_CONFIDENCE]
+    snap = np.load(trainer.snapshot())
+    assert snap["proposal_centers"].shape == (len(boxes), 3)
+    assert np.allclose(snap["proposal_confidence"], conf, atol=1e-4)
+
+    (tmp_path / "run" / "cfg.json").write_text(json.dumps(cfg.to_json()))
+    assert main(["propose", str(tmp_path / "run"), "--out", str(tmp_path / "p.json"), "--quiet"]) == 0
+    assert "proposals" in capsys.readouterr().out
+    data = json.loads((tmp_path / "p.json").read_text())
+    assert data["resolution"] == [128, 96] and set(data["n_candidates"]) == {c.name for c in trainer.scene.train_cameras}
+    for box, entry in zip(load_prompts(tmp_path / "p.json"), data["prompts"]):
+        if entry["confidence"] >= TRAIN_MIN_CONFIDENCE:
+            assert bool(box.contains(drones).any()), entry
+
+
+def test_propose_prompts_needs_the_promptgs_strategy(toy, tmp_path):
+    from promptgs_engine.config import TrainConfig
+    from promptgs_engine.errors import PromptGSError
+
+    with pytest.raises(PromptGSError, match="--propose-prompts needs --strategy promptgs"):
+        TrainConfig(dataset=str(toy), out=str(tmp_path / "r"), strategy="3dgs", propose_prompts=True).validate()
