@@ -41,6 +41,11 @@ import torch.nn.functional as F
 
 __all__ = ["ResidualSettings", "ViewEvidence", "residual_strength", "view_evidence"]
 
+# Below this rendered opacity a pixel shows nothing (its depth is taken as infinite). The
+# expected depth is divided by the opacity, so a faint surface early in training still
+# tells where the render puts it.
+MIN_DEPTH_ALPHA = 0.05
+
 
 @dataclass(frozen=True)
 class ResidualSettings:
@@ -147,6 +152,11 @@ def _centre_weight(sigma: float) -> float:
     return float(_gaussian_kernel(sigma).max() ** 2)
 
 
+def _norm(x: torch.Tensor) -> torch.Tensor:
+    """Euclidean norm over the channels of [C, H, W]."""
+    return (x * x).sum(dim=0).sqrt()
+
+
 def _local_mean(x: torch.Tensor, window: int) -> torch.Tensor:
     """Mean of [H, W] over a window × window neighbourhood (clipped at the edges), from
     running sums."""
@@ -177,17 +187,18 @@ def residual_strength(image: torch.Tensor, render: torch.Tensor, settings: Resid
     gt, ren = _as_chw(image), _as_chw(render)
     if gt.shape != ren.shape:
         raise ValueError(f"image {tuple(gt.shape)} and render {tuple(ren.shape)} differ in size")
+    both = torch.cat([gt, ren])  # [6, H, W]: one blur per width for image and render
     best: dict[str, torch.Tensor] = {}
     for sigma in settings.sigmas:
-        dog_gt = _dog(gt, sigma, settings.surround)
-        dog_ren = _dog(ren, sigma, settings.surround)
-        r = (dog_gt - dog_ren).norm(dim=0)  # the residual's response (the filter is linear)
+        dog = _dog(both, sigma, settings.surround)
+        dog_gt, dog_ren = dog[:3], dog[3:]
+        r = _norm(dog_gt - dog_ren)  # the residual's response (the filter is linear)
         floor = max(settings.abs_floor, float(r.median()))
         s = r / _local_mean(r, settings.window).clamp_min(floor)
-        own = dog_gt.norm(dim=0)
+        own = _norm(dog_gt)
         maps = {
             "strength": s, "contrast": r, "scale": torch.full_like(s, sigma), "image_blob": own,
-            "image_has_it": (own >= dog_ren.norm(dim=0)).float(),
+            "image_has_it": (own >= _norm(dog_ren)).float(),
         }
         if not best:
             best = maps
@@ -207,7 +218,7 @@ def view_evidence(
 ) -> ViewEvidence:
     """Candidates of one view (see the module docstring). ``image`` and ``render`` are
     [H, W, 3]; ``depth`` [H, W] is the render's expected depth and ``alpha`` [H, W] its
-    opacity (depth counts only where alpha ≥ 0.5), both optional."""
+    opacity (depth counts only where alpha ≥ MIN_DEPTH_ALPHA), both optional."""
     maps = residual_strength(image, render, settings)
     s, r, scale, has_it = maps["strength"], maps["contrast"], maps["scale"], maps["image_has_it"]
     h, w = s.shape
@@ -230,7 +241,7 @@ def view_evidence(
         d = torch.as_tensor(depth).detach().cpu().float().reshape(h, w)
         bad = ~torch.isfinite(d) | (d <= 0)
         if alpha is not None:
-            bad |= torch.as_tensor(alpha).detach().cpu().float().reshape(h, w) < 0.5
+            bad |= torch.as_tensor(alpha).detach().cpu().float().reshape(h, w) < MIN_DEPTH_ALPHA
         depth_map = torch.where(bad, torch.full_like(d, float("inf")), d).numpy().astype(np.float16)
     return ViewEvidence(
         uv=uv.double().numpy(),

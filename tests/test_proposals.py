@@ -18,7 +18,8 @@ import torch
 from promptgs_engine.bench.toy_scene import look_at
 from promptgs_engine.errors import PromptError
 from promptgs_engine.prompts import load_prompts, prompts_from_json
-from promptgs_engine.proposals import load_proposals, propose
+from promptgs_engine.proposals import group_boxes, load_proposals, propose
+from promptgs_engine.propose import TRAIN_MIN_CONFIDENCE
 from promptgs_engine.residuals import ResidualSettings, view_evidence
 
 W, H, FOCAL = 128, 96, 110.0
@@ -109,7 +110,7 @@ def test_texture_the_render_blurs_everywhere_gives_no_strong_candidate():
 def test_a_drone_planted_over_textured_ground_is_proposed_and_the_texture_is_not():
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, spots=True, drone=DRONE))
-    confident = [p for p in result.proposals if p.confidence >= 0.4]
+    confident = [p for p in result.proposals if p.confidence >= TRAIN_MIN_CONFIDENCE]
     assert len(confident) == 1
     best = confident[0]
     assert np.linalg.norm(np.array(best.point) - DRONE) < 0.03
@@ -121,22 +122,35 @@ def test_a_drone_planted_over_textured_ground_is_proposed_and_the_texture_is_not
     # The spots on the ground are small, high-contrast and consistent across views, but
     # lie on the render's surface: none is proposed.
     for p in result.proposals:
-        assert np.linalg.norm(np.array(p.point) - DRONE) < 0.05 or p.confidence < 0.4, p
+        assert np.linalg.norm(np.array(p.point) - DRONE) < 0.05 or p.confidence < TRAIN_MIN_CONFIDENCE, p
     assert any(r.reason == "surface" for r in result.rejected)
 
 
 def test_texture_only_ground_gets_no_proposal():
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, spots=True))
-    assert [p for p in result.proposals if p.confidence >= 0.4] == []
+    assert [p for p in result.proposals if p.confidence >= TRAIN_MIN_CONFIDENCE] == []
 
 
 def test_a_moving_object_is_reported_not_boxed():
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, drone=DRONE, moving=True))
-    assert [p for p in result.proposals if p.confidence >= 0.4] == []
+    assert [p for p in result.proposals if p.confidence >= TRAIN_MIN_CONFIDENCE] == []
     # Its strong residual blobs are listed, per view, as candidates nothing accounts for.
     assert sum(len(v) for v in result.unmatched.values()) >= len(cams) // 2
+
+
+def test_nearby_proposals_are_grouped_into_one_prompt():
+    from promptgs_engine.prompts import PromptBox
+
+    boxes = [PromptBox((0, 0, 0), (0.2, 0.2, 0.2), weight=0.5), PromptBox((0.5, 0, 0), (0.2, 0.2, 0.2), weight=0.9),
+             PromptBox((1.0, 0.1, 0), (0.2, 0.2, 0.2), weight=0.4), PromptBox((5, 5, 5), (0.2, 0.2, 0.2), weight=0.7)]
+    groups, members = group_boxes(boxes, link=0.6)
+    assert members == [[0, 1, 2], [3]]  # a chain within the link is one group
+    assert groups[0].weight == 0.9 and groups[1].weight == 0.7
+    assert np.allclose(groups[0].size, [1.2, 0.3, 0.2]) and np.allclose(groups[0].center, [0.5, 0.05, 0.0])
+    for b in boxes[:3]:
+        assert bool(groups[0].contains(b.corners()).all())
 
 
 def test_proposal_file_round_trips_as_a_prompt_file(tmp_path):
@@ -164,11 +178,10 @@ def test_proposal_file_round_trips_as_a_prompt_file(tmp_path):
 
 def test_training_proposes_prompts_at_the_toy_drones_and_propose_reads_the_run(toy, tmp_path, capsys):
     """`--propose-prompts` on the toy scene (no box drawn): the proposals written at the
-    proposal step become the run's prompts and sit on true drones; the snapshot carries
-    them; `promptgs propose RUN` proposes from the finished run."""
+    proposal step sit on true drones and, grouped, become the run's prompts; the
+    snapshot carries them; `promptgs propose RUN` proposes from the finished run."""
     from promptgs_engine.cli import main
     from promptgs_engine.config import TrainConfig
-    from promptgs_engine.propose import TRAIN_MIN_CONFIDENCE
     from promptgs_engine.train import Trainer
 
     cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=200, strategy="promptgs",
@@ -183,7 +196,13 @@ def test_training_proposes_prompts_at_the_toy_drones_and_propose_reads_the_run(t
     for box in prompts:  # each proposed box holds a drone
         assert bool(box.contains(drones).any()), box
     boxes, conf = load_proposals(tmp_path / "run" / "proposals.json")
-    assert prompts == [b for b, c in zip(boxes, conf) if c >= TRAIN_MIN_CONFIDENCE]
+    trained = json.loads((tmp_path / "run" / "proposals.json").read_text())["trained_as"]
+    # The confident proposals, grouped where they lie close together, are the prompts.
+    assert prompts == prompts_from_json({"prompts": [{k: g[k] for k in ("center", "size", "rotation_wxyz", "weight")} for g in trained]})
+    members = sorted(i for g in trained for i in g["members"])
+    assert members == [i for i, c in enumerate(conf) if c >= TRAIN_MIN_CONFIDENCE]
+    for i in members:
+        assert bool(boxes[i].contains(drones).any()), boxes[i]
     snap = np.load(trainer.snapshot())
     assert snap["proposal_centers"].shape == (len(boxes), 3)
     assert np.allclose(snap["proposal_confidence"], conf, atol=1e-4)
