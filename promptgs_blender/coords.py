@@ -177,6 +177,19 @@ def prompt_box(box_to_dataset, display_size: float = 1.0) -> dict:
     }
 
 
+def prompt_box_matrix(box: dict) -> np.ndarray:
+    """The matrix, in dataset coordinates, of a CUBE empty of display size 1 drawing the
+    prompt-file ``box`` (``center``, ``size``, ``rotation_wxyz``): the inverse of
+    :func:`prompt_box`, so ``prompt_box(prompt_box_matrix(b))`` gives ``b`` back."""
+    size = np.asarray(box["size"], np.float64)
+    if size.shape != (3,) or np.any(size <= 0):
+        raise ValueError(f"box size {box['size']} is not three positive lengths")
+    matrix = np.eye(4)
+    matrix[:3, :3] = quat_to_rotmat(box.get("rotation_wxyz", (1.0, 0.0, 0.0, 0.0))) * (size / 2.0)
+    matrix[:3, 3] = np.asarray(box["center"], np.float64)
+    return matrix
+
+
 def project_colmap(point, qvec, tvec, fx, fy, cx, cy) -> np.ndarray:
     """Pixel (u, v) of a dataset-world point with a pinhole COLMAP camera (for checks)."""
     x = quat_to_rotmat(qvec) @ np.asarray(point, np.float64) + np.asarray(tvec, np.float64)

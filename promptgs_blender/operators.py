@@ -8,7 +8,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 from mathutils import Vector
 
-from . import colmap, display, importer, plyio, prompts, reconstruct, training
+from . import colmap, display, importer, plyio, prompts, proposals, reconstruct, training
 from .props import prefs
 from .trainer import find_python, probe
 
@@ -120,7 +120,55 @@ class PROMPTGS_OT_remove_prompt(bpy.types.Operator):
     def execute(self, context):
         obj = bpy.data.objects.get(self.name)
         if obj is not None:
+            proposed = obj.get("promptgs_proposed") is not None
             bpy.data.objects.remove(obj)
+            if proposed:
+                proposals.update_markers(context)
+        return {"FINISHED"}
+
+
+def _start(operator, context, start, message: str) -> set[str]:
+    """Run a ``training.start_*`` function: its problem is reported as an error, else the
+    panel's ``message`` field as information."""
+    try:
+        start(context)
+    except training.UserError as exc:
+        operator.report({"ERROR"}, str(exc))
+        return {"CANCELLED"}
+    operator.report({"INFO"}, getattr(context.window_manager.promptgs_run, message))
+    return {"FINISHED"}
+
+
+class PROMPTGS_OT_propose(bpy.types.Operator):
+    """Box the small objects the run still misses (several views show them, its render does not): promptgs propose in the background"""
+
+    bl_idname = "promptgs.propose"
+    bl_label = "Propose Prompts"
+
+    def execute(self, context):
+        return _start(self, context, training.start_propose, "propose_message")
+
+
+class PROMPTGS_OT_accept_proposal(bpy.types.Operator):
+    """Make this proposed cube a prompt (empty name: every proposed cube)"""
+
+    bl_idname = "promptgs.accept_proposal"
+    bl_label = "Accept Proposal"
+    bl_options = {"REGISTER", "UNDO"}
+
+    name: StringProperty()
+
+    def execute(self, context):
+        cubes = [bpy.data.objects.get(self.name)] if self.name else proposals.proposed_objects(context.scene)
+        if not cubes or cubes[0] is None:
+            self.report({"ERROR"}, f"No proposed prompt '{self.name}'")
+            return {"CANCELLED"}
+        try:
+            for obj in cubes:
+                proposals.accept(context, obj)
+        except proposals.ProposeError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
         return {"FINISHED"}
 
 
@@ -293,13 +341,7 @@ class PROMPTGS_OT_render_preview(bpy.types.Operator):
     bl_label = "Render Preview"
 
     def execute(self, context):
-        try:
-            training.start_preview(context)
-        except training.UserError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        self.report({"INFO"}, context.window_manager.promptgs_run.preview_message)
-        return {"FINISHED"}
+        return _start(self, context, training.start_preview, "preview_message")
 
 
 def menu_import(self, context):
@@ -308,7 +350,7 @@ def menu_import(self, context):
 
 CLASSES = (
     PROMPTGS_OT_import_colmap, PROMPTGS_OT_use_camera, PROMPTGS_OT_add_prompt, PROMPTGS_OT_select_prompt,
-    PROMPTGS_OT_remove_prompt, PROMPTGS_OT_train, PROMPTGS_OT_cancel, PROMPTGS_OT_load_result,
+    PROMPTGS_OT_remove_prompt, PROMPTGS_OT_propose, PROMPTGS_OT_accept_proposal, PROMPTGS_OT_train, PROMPTGS_OT_cancel, PROMPTGS_OT_load_result,
     PROMPTGS_OT_find_trainer, PROMPTGS_OT_test_trainer, PROMPTGS_OT_generate_dataset,
     PROMPTGS_OT_render_preview, PROMPTGS_OT_reconstruct, PROMPTGS_OT_cancel_reconstruct,
 )

@@ -21,7 +21,7 @@ import bpy
 import numpy as np
 
 from . import coords, prompts
-from .trainer import TrainerError, TrainerRun, check_python, engine_command
+from .trainer import TrainerError, TrainerRun, check_python, engine_command, exit_line
 
 PREVIEW = "PromptGS Preview"
 SIDE_BY_SIDE = "PromptGS Preview | Image"
@@ -122,19 +122,14 @@ def drain(context) -> bool:
     if _job is None:
         return False
     state = context.window_manager.promptgs_run
-    for event in _job.run.drain():
-        if event.get("event") != "exit":
-            continue
-        if event.get("returncode") == 0 and _job.image_path.is_file():
-            camera = bpy.data.objects.get(_job.camera)
-            image = show(context, _job.image_path, camera)
-            state.preview_status = "DONE"
-            state.preview_message = (f"{image.name}: '{_job.camera}', {image.size[0]}×{image.size[1]}, "
-                                     f"{time.time() - _job.started:.1f} s")
-        else:
-            tail = event.get("stderr_tail") or []
-            state.preview_status = "ERROR"
-            state.preview_message = (tail[-1] if tail else f"render exited with code {event.get('returncode')}")[:300]
+    event = _job.run.exit_event()
+    if event is not None and event.get("returncode") == 0 and _job.image_path.is_file():
+        image = show(context, _job.image_path, bpy.data.objects.get(_job.camera))
+        state.preview_status = "DONE"
+        state.preview_message = (f"{image.name}: '{_job.camera}', {image.size[0]}×{image.size[1]}, "
+                                 f"{time.time() - _job.started:.1f} s")
+    elif event is not None:
+        state.preview_status, state.preview_message = "ERROR", exit_line(event, "render")
     if _job.run.finished and _job.run.events.empty():
         _job = None
         return False

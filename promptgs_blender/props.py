@@ -92,6 +92,10 @@ class PromptGSSettings(bpy.types.PropertyGroup):
     budget: IntProperty(name="Budget", default=0, min=0, description="Maximum number of Gaussians (0: no limit)")
     auto_prompts: IntProperty(name="Auto Prompts", default=0, min=0,
                               description="Also add the error field's top N proposals as prompts (0: off)")
+    propose_prompts: BoolProperty(
+        name="Propose While Training", default=False,
+        description="Part-way through densification, box what several views show and the render still misses "
+                    "(small objects) and train them as prompts too (PromptGS strategy)")
     compact: BoolProperty(
         name="Compact", default=False,
         description="When growth ends, remove the Gaussians that carry the least of the training views "
@@ -163,6 +167,9 @@ class PromptGSRunState(bpy.types.PropertyGroup):
     preview_status: EnumProperty(name="Preview job", default="IDLE", items=[
         (s, s.title(), "") for s in ("IDLE", "RUNNING", "DONE", "ERROR")])
     preview_message: StringProperty()
+    propose_status: EnumProperty(name="Propose job", default="IDLE", items=[
+        (s, s.title(), "") for s in ("IDLE", "RUNNING", "DONE", "ERROR")])
+    propose_message: StringProperty()
 
 
 CLASSES = (PromptGSPreferences, PromptGSSettings, PromptGSRunState)

@@ -200,6 +200,12 @@ class TrainerRun:
                 break
         return out
 
+    def exit_event(self) -> dict | None:
+        """For a job whose only news is its end: the ``exit`` event if it came (the other
+        queued events are dropped), else None. Never blocks."""
+        ends = [event for event in self.drain() if event.get("event") == "exit"]
+        return ends[-1] if ends else None
+
     def cancel(self, timeout: float = 20.0, block: bool = True) -> None:
         """Ask the process to stop (SIGINT: the trainer keeps its last snapshot), then force it.
 
@@ -233,6 +239,12 @@ class TrainerRun:
         if self._thread is not None:
             self._thread.join(timeout)
         return self.finished
+
+
+def exit_line(event: dict, what: str) -> str:
+    """The line to show for a failed job's ``exit`` event: its last stderr line, else its exit code."""
+    tail = event.get("stderr_tail") or []
+    return (tail[-1] if tail else f"{what} exited with code {event.get('returncode')}")[:300]
 
 
 def metrics_summary(metrics: dict) -> str:

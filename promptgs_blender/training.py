@@ -16,7 +16,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from . import colmap, display, importer, plyio, preview, prompts, reconstruct
+from . import colmap, display, importer, plyio, preview, prompts, proposals, reconstruct
 from .props import prefs
 from .trainer import TrainerError, TrainerRun, check_python, engine_command, find_python, reduce_event
 
@@ -94,6 +94,8 @@ def build_job(context, out: Path) -> dict:
         job["budget"] = settings.budget
     if settings.auto_prompts:
         job["auto_prompts"] = settings.auto_prompts
+    if settings.propose_prompts and settings.strategy == "promptgs":
+        job["propose_prompts"] = True
     if settings.compact:
         job["compact"] = True
     if settings.nproc > 1:
@@ -216,6 +218,7 @@ def drain_and_apply(context=None) -> bool:
         else:
             busy = True
     busy = preview.drain(context) or busy
+    busy = proposals.drain(context) or busy
     busy = reconstruct.drain(context) or busy
     _redraw(context)
     return busy
@@ -233,7 +236,7 @@ def _timer() -> float | None:
     return 0.25 if drain_and_apply(bpy.context) else None
 
 
-def _results_collection(context) -> bpy.types.Collection:
+def results_collection(context) -> bpy.types.Collection:
     collection = bpy.data.collections.get(RESULTS)
     if collection is None:
         collection = bpy.data.collections.new(RESULTS)
@@ -245,7 +248,7 @@ def _results_collection(context) -> bpy.types.Collection:
 def show_gaussians(context, data: dict[str, np.ndarray]) -> bpy.types.Object:
     """Update (or create once) the Gaussians object from snapshot-form arrays."""
     settings = context.scene.promptgs
-    obj = display.points_object(GAUSSIANS, _results_collection(context), settings.root,
+    obj = display.points_object(GAUSSIANS, results_collection(context), settings.root,
                                 radius=settings.point_radius, spheres=True)
     n = len(data["means"])
     attributes = {key: data[key] for key in ("opacity", "scale", "rotation", "color") if key in data}
@@ -259,7 +262,7 @@ def show_gaussians(context, data: dict[str, np.ndarray]) -> bpy.types.Object:
 
 def show_loss_field(context, centers: np.ndarray, loss: np.ndarray, attention: np.ndarray) -> bpy.types.Object:
     settings = context.scene.promptgs
-    obj = display.points_object(LOSS_FIELD, _results_collection(context), settings.root,
+    obj = display.points_object(LOSS_FIELD, results_collection(context), settings.root,
                                 radius=settings.point_radius * 3.0, spheres=True)
     display.set_points(obj, centers, {"loss": loss, "attention": attention})
     step = display.grid_step(centers)
@@ -324,21 +327,44 @@ def start_dataset_job(context, out: Path, preset: str, seed: int) -> TrainerRun:
     return run
 
 
-def start_preview(context) -> preview.PreviewJob:
-    """*Render Preview* of the chosen run (default: the current or last training run)."""
+def chosen_run(context) -> tuple[Path, str]:
+    """The run that *Render Preview* and *Propose Prompts* work on: the chosen run folder,
+    else the current or last training run; with the newest snapshot the add-on saw of it."""
     settings, state = context.scene.promptgs, context.window_manager.promptgs_run
     folder = bpy.path.abspath(settings.preview_run) if settings.preview_run else state.out_dir
     if not folder:
-        raise UserError("No run to preview: train first, or choose a run folder")
-    last_snapshot = state.last_snapshot if folder == state.out_dir else ""
-    try:
-        job = preview.start(context, trainer_python(context), Path(folder), last_snapshot)
-    except (preview.PreviewError, OSError) as exc:
-        state.preview_status, state.preview_message = "ERROR", str(exc)
-        raise UserError(str(exc)) from None
+        raise UserError("No run: train first, or choose a run folder")
+    return Path(folder), state.last_snapshot if folder == state.out_dir else ""
+
+
+def _poll_in_background() -> None:
     if not bpy.app.background and not bpy.app.timers.is_registered(_timer):
         bpy.app.timers.register(_timer, first_interval=0.25)
-    return job
+
+
+def _start_on_chosen_run(context, start, errors: type[Exception], job: str):
+    """``start(context, python, run_folder, last_snapshot)`` on the chosen run; a problem
+    goes to the panel's ``JOB_status`` / ``JOB_message`` and is raised as a UserError."""
+    state = context.window_manager.promptgs_run
+    folder, last_snapshot = chosen_run(context)
+    try:
+        started = start(context, trainer_python(context), folder, last_snapshot)
+    except (errors, OSError) as exc:
+        setattr(state, f"{job}_status", "ERROR")
+        setattr(state, f"{job}_message", str(exc))
+        raise UserError(str(exc)) from None
+    _poll_in_background()
+    return started
+
+
+def start_preview(context) -> preview.PreviewJob:
+    """*Render Preview* of the chosen run (default: the current or last training run)."""
+    return _start_on_chosen_run(context, preview.start, preview.PreviewError, "preview")
+
+
+def start_propose(context) -> proposals.ProposeJob:
+    """*Propose Prompts* from the chosen run (default: the current or last training run)."""
+    return _start_on_chosen_run(context, proposals.start, proposals.ProposeError, "propose")
 
 
 def start_reconstruction(context, source: Path) -> None:
@@ -367,6 +393,7 @@ def stop_all(*_args) -> None:
             run.cancel(timeout=10.0, block=True)
     _train = _dataset_job = None
     preview.stop()
+    proposals.stop()
     reconstruct.stop()
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import prompts, training
+from . import prompts, proposals, training
 
 
 def _duration(seconds: float) -> str:
@@ -60,9 +60,18 @@ class PROMPTGS_PT_prompts(PromptGSPanel, bpy.types.Panel):
 
     def draw(self, context):
         layout = self.layout
-        layout.operator("promptgs.add_prompt", icon="CUBE")
+        state = context.window_manager.promptgs_run
+        row = layout.row(align=True)
+        row.operator("promptgs.add_prompt", icon="CUBE")
+        sub = row.row(align=True)
+        sub.enabled = state.propose_status != "RUNNING"
+        sub.operator("promptgs.propose", icon="VIEWZOOM")
+        if state.propose_status != "IDLE":
+            icon = {"ERROR": "ERROR", "DONE": "CHECKMARK"}.get(state.propose_status, "INFO")
+            layout.label(text=state.propose_message, icon=icon)
         items = prompts.prompt_objects(context.scene)
-        if not items:
+        proposed = proposals.proposed_objects(context.scene)
+        if not items and not proposed:
             layout.label(text="No prompts: the whole scene counts the same")
         for obj in items:
             row = layout.row(align=True)
@@ -73,6 +82,16 @@ class PROMPTGS_PT_prompts(PromptGSPanel, bpy.types.Panel):
                          emboss=True).name = obj.name
             sub.prop(obj, "promptgs_weight", text="")
             row.operator("promptgs.remove_prompt", text="", icon="X").name = obj.name
+        if proposed:
+            box = layout.box()
+            box.label(text=f"Proposed ({len(proposed)}): accept or delete", icon="QUESTION")
+            for obj in proposed:
+                row = box.row(align=True)
+                row.operator("promptgs.select_prompt", text=obj.name, depress=obj.select_get()).name = obj.name
+                row.label(text=f"{obj['promptgs_confidence']:.2f}  {obj.get('promptgs_views', '')}")
+                row.operator("promptgs.accept_proposal", text="", icon="CHECKMARK").name = obj.name
+                row.operator("promptgs.remove_prompt", text="", icon="X").name = obj.name
+            box.operator("promptgs.accept_proposal", text="Accept All", icon="CHECKMARK").name = ""
 
 
 class PROMPTGS_PT_train(PromptGSPanel, bpy.types.Panel):
@@ -90,6 +109,9 @@ class PROMPTGS_PT_train(PromptGSPanel, bpy.types.Panel):
         row.prop(settings, "iterations")
         col.prop(settings, "budget")
         col.prop(settings, "auto_prompts")
+        sub = col.row()
+        sub.enabled = settings.strategy == "promptgs"
+        sub.prop(settings, "propose_prompts")
         col.prop(settings, "compact")
         col.prop(settings, "backend")
         col.prop(settings, "nproc")

@@ -128,7 +128,7 @@ CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap"
           "train_with_recorded_events_updates_objects", "cancel_keeps_last_snapshot",
           "crashed_trainer_shows_error_lines", "wrong_trainer_path_is_a_clear_error",
           "dataset_without_images_is_a_clear_error", "dataset_generation_runs_in_background",
-          "reconstruct_from_photos_imports_the_result", "reconstruct_errors_and_cancel", "load_result_reads_3dgs_ply", "million_points_update", "display_settings_apply", "panels_draw_in_every_state", "loading_a_file_stops_the_trainer",
+          "reconstruct_from_photos_imports_the_result", "reconstruct_errors_and_cancel", "load_result_reads_3dgs_ply", "million_points_update", "display_settings_apply", "propose_accept_and_reject", "panels_draw_in_every_state", "loading_a_file_stops_the_trainer",
           "never_imports_torch_or_engine"]
 
 

@@ -204,6 +204,22 @@ def test_prompt_box_from_cube_matrix():
     assert coords.prompt_box(mirrored)["size"] == pytest.approx([1.0, 2.0, 4.0])
 
 
+
+def test_proposed_box_becomes_a_cube_that_gives_the_box_back():
+    box = {"center": [0.5, -1.0, 2.0], "size": [0.1, 0.3, 0.2],
+           "rotation_wxyz": coords.rotmat_to_quat(coords.quat_to_rotmat([0.8, -0.2, 0.4, 0.1])).tolist()}
+    m = coords.prompt_box_matrix(box)
+    back = coords.prompt_box(m)  # what the job file sends for that cube
+    np.testing.assert_allclose(back["center"], box["center"], atol=1e-12)
+    np.testing.assert_allclose(back["size"], box["size"], atol=1e-12)
+    assert _same_rotation(back["rotation_wxyz"], box["rotation_wxyz"])
+    # the cube's corners (display size 1: ±1 on each local axis) are the box's corners
+    corner = m @ np.array([1.0, -1.0, 1.0, 1.0])
+    rot = coords.quat_to_rotmat(box["rotation_wxyz"])
+    np.testing.assert_allclose(corner[:3], np.array(box["center"]) + rot @ (np.array([1, -1, 1]) * np.array(box["size"]) / 2))
+    with pytest.raises(ValueError, match="three positive lengths"):
+        coords.prompt_box_matrix({**box, "size": [0.1, 0.0, 0.2]})
+
 def _write_3dgs_ply(path: Path, n: int, rng) -> dict:
     plyfile = pytest.importorskip("plyfile")
     names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]

@@ -163,11 +163,15 @@ def prompt_cube_box_in_job_file():
     for key in ("dataset", "out", "images", "iterations", "strategy", "backend", "snapshot_every", "seed"):
         assert key in job, key
     assert job["images"] == "images_4" and Path(job["dataset"]).name == "tumbler"
-    assert not {"budget", "auto_prompts", "compact", "nproc"} & set(job)  # off / one process
-    scene().promptgs.compact, scene().promptgs.nproc = True, 2
+    assert not {"budget", "auto_prompts", "propose_prompts", "compact", "nproc"} & set(job)  # off / one process
+    scene().promptgs.compact, scene().promptgs.nproc, scene().promptgs.propose_prompts = True, 2, True
     job_with = addon("training").build_job(bpy.context, TMP / "job_check")
-    scene().promptgs.compact, scene().promptgs.nproc = False, 1
-    assert job_with["compact"] is True and job_with["nproc"] == 2, job_with
+    scene().promptgs.strategy = "3dgs"  # proposing needs the PromptGS strategy: not asked for
+    job_3dgs = addon("training").build_job(bpy.context, TMP / "job_check")
+    scene().promptgs.compact, scene().promptgs.nproc, scene().promptgs.propose_prompts = False, 1, False
+    scene().promptgs.strategy = "promptgs"
+    assert job_with["compact"] is True and job_with["nproc"] == 2 and job_with["propose_prompts"] is True, job_with
+    assert "propose_prompts" not in job_3dgs, job_3dgs
     # a flat cube is a clear error in the panel, not a traceback
     off.promptgs_enabled = True
     off.scale = (1.0, 0.0, 1.0)
@@ -518,12 +522,93 @@ def display_settings_apply():
     return {"field_shown": int((value >= 0.75).sum()), "field_total": len(value)}
 
 
+def box_of(obj, root) -> dict:
+    """The prompt-file box the add-on sends for a cube (the job file's conversion)."""
+    return addon("coords").prompt_box(np.array(root.matrix_world.inverted() @ obj.matrix_world), obj.empty_display_size)
+
+
+@check
+def propose_accept_and_reject():
+    """Propose Prompts on a run: cubes in the Proposed state (not trained), one accepted
+    becomes the proposed box in the job file, one deleted is gone; errors are one line."""
+    proposals, prompts_module, display = addon("proposals"), addon("prompts"), addon("display")
+    root = scene().promptgs.root
+    run = TMP / "propose_run"
+    (run / "snapshots").mkdir(parents=True)
+    (run / "cfg.json").write_text("{}")
+    np.savez(run / "snapshots" / "step_000010.npz", means=np.zeros((1, 3), np.float32))
+    scene().promptgs.preview_run = str(run)
+    trained_before = addon("training").build_job(bpy.context, TMP / "job_propose")["prompts"]["prompts"]
+    fake_trainer("ok")
+    bpy.ops.promptgs.propose()
+    assert state().propose_status == "RUNNING", (state().propose_status, state().propose_message)
+    run_until_idle(60)
+    assert state().propose_status == "DONE", state().propose_message
+    assert state().propose_message.startswith("2 proposals from snapshot step_000010, 1 of confidence"), state().propose_message
+    argv = json.loads((run / "propose" / "argv.json").read_text())
+    argv = argv[argv.index("propose"):]
+    assert argv[:4] == ["propose", str(run), "--out", str(run / "propose" / "proposals.json")], argv
+    assert argv[argv.index("--snapshot") + 1] == str(run / "snapshots" / "step_000010.npz"), argv
+    written = json.loads((run / "propose" / "proposals.json").read_text())["prompts"]
+    cubes = proposals.proposed_objects(scene())
+    assert [c["promptgs_confidence"] for c in cubes] == pytest_approx([0.82, 0.21])
+    assert cubes[0]["promptgs_views"] == "24/31 views"
+    assert cubes[0].users_collection[0].name == "PromptGS Proposed" and cubes[0].empty_display_type == "CUBE"
+    for cube, entry in zip(cubes, written):  # placed through the dataset root, exactly
+        box = box_of(cube, root)
+        np.testing.assert_allclose(box["center"], entry["center"], atol=1e-5)
+        np.testing.assert_allclose(box["size"], entry["size"], atol=1e-5)
+        assert abs(abs(np.dot(box["rotation_wxyz"], entry["rotation_wxyz"])) - 1.0) < 1e-6
+    # proposed cubes are not trained until accepted
+    assert addon("training").build_job(bpy.context, TMP / "job_propose")["prompts"]["prompts"] == trained_before
+    markers = bpy.data.objects["PromptGS Proposal Points"]
+    np.testing.assert_allclose(display.get_attribute(markers, "confidence"), [0.82, 0.21], atol=1e-6)
+    np.testing.assert_allclose(display.get_attribute(markers, "position"), [e["center"] for e in written], atol=1e-5)
+    log = []
+    addon("ui").PROMPTGS_PT_prompts.draw(SimpleNamespace(layout=StubLayout(log)), bpy.context)
+    assert any(line.startswith("0.82  24/31 views") for line in log), log
+    # accept the first (the user made it a little larger first), delete the second
+    accepted, rejected = cubes
+    accepted.scale = accepted.scale * 1.5
+    bpy.context.view_layer.update()
+    expected = box_of(accepted, root)
+    bpy.ops.promptgs.accept_proposal(name=accepted.name)
+    rejected_name = rejected.name
+    bpy.ops.promptgs.remove_prompt(name=rejected_name)
+    assert proposals.proposed_objects(scene()) == [] and bpy.data.objects.get(rejected_name) is None
+    assert accepted in prompts_module.prompt_objects(scene()) and accepted.get("promptgs_proposed") is None
+    assert bpy.data.objects.get("PromptGS Proposal Points") is None  # no proposal left to mark
+    trained = addon("training").build_job(bpy.context, TMP / "job_propose")["prompts"]["prompts"]
+    assert len(trained) == len(trained_before) + 1
+    new = next(b for b in trained if b not in trained_before)
+    np.testing.assert_allclose(new["center"], written[0]["center"], atol=1e-5)
+    np.testing.assert_allclose(new["size"], np.array(written[0]["size"]) * 1.5, atol=1e-5)
+    np.testing.assert_allclose(new["size"], expected["size"], atol=1e-6)
+    assert new["weight"] == 1.0
+    bpy.data.objects.remove(accepted)
+    # a trainer error is one line in the panel; a folder that is not a run is refused
+    fake_trainer("crash")
+    bpy.ops.promptgs.propose()
+    run_until_idle(60)
+    assert state().propose_status == "ERROR", state().propose_message
+    assert state().propose_message == f"promptgs: error: {run}: the run has no point_cloud.ply yet", state().propose_message
+    scene().promptgs.preview_run = str(TMP)
+    try:
+        bpy.ops.promptgs.propose()
+        raise AssertionError("propose did not fail")
+    except RuntimeError:
+        pass
+    assert "not a PromptGS run folder" in state().propose_message, state().propose_message
+    scene().promptgs.preview_run = ""
+    return {"message": state().propose_message}
+
+
 @check
 def panels_draw_in_every_state():
     ui = addon("ui")
     labels = {}
     for status in ("IDLE", "RUNNING", "ERROR", "DONE"):
-        state().status = state().sfm_status = state().preview_status = status
+        state().status = state().sfm_status = state().preview_status = state().propose_status = status
         state().error_lines = "line one\nline two"
         log = []
         for cls in ui.CLASSES:

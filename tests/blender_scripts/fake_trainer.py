@@ -4,6 +4,7 @@ Used as the add-on's "trainer Python" in tests (through a small executable wrapp
 parses ``--out`` and ``--job``, writes snapshot ``.npz`` files with numpy and prints
 JSON-lines events. ``FAKE_TRAINER_MODE`` picks the behaviour: ``ok`` (default), ``crash``
 (stderr lines, exit code 3), ``slow`` (runs until interrupted; SIGINT stops it cleanly).
+``propose``, ``dataset`` and ``sfm`` answer as those commands do.
 """
 
 import json
@@ -82,9 +83,34 @@ def sfm(argv, mode):
     emit(event="sfm_done", out=str(out), summary=summary)
 
 
+# What `promptgs propose` writes for the fake run (dataset coordinates): a rotated, flat
+# box of high confidence and a small one of low confidence.
+PROPOSALS = [
+    {"center": [0.21, -0.34, 1.52], "size": [0.06, 0.04, 0.09], "rotation_wxyz": [0.9, 0.1, -0.3, 0.2], "weight": 0.82,
+     "confidence": 0.82, "evidence": {"point": [0.21, -0.34, 1.52], "n_seeing": 31, "n_supporting": 24}},
+    {"center": [-0.4, 0.1, 0.8], "size": [0.03, 0.03, 0.03], "rotation_wxyz": [1.0, 0.0, 0.0, 0.0], "weight": 0.21,
+     "confidence": 0.21, "evidence": {"point": [-0.4, 0.1, 0.8], "n_seeing": 12, "n_supporting": 5}},
+]
+
+
+def propose(argv, mode):
+    """``promptgs propose RUN --out FILE [--snapshot S]``: the fixed proposals, or one error line."""
+    run, out = Path(argv[argv.index("propose") + 1]), Path(argv[argv.index("--out") + 1])
+    (out.parent / "argv.json").write_text(json.dumps(argv))
+    if mode == "crash":
+        print(f"promptgs: error: {run}: the run has no point_cloud.ply yet", file=sys.stderr)
+        sys.exit(2)
+    rotated = [dict(p, rotation_wxyz=(np.array(p["rotation_wxyz"]) / np.linalg.norm(p["rotation_wxyz"])).tolist())
+               for p in PROPOSALS]
+    out.write_text(json.dumps({"schema": "promptgs-proposals/1", "prompts": rotated, "rejected": [], "unmatched": {}}))
+    print(f"{len(rotated)} proposals; wrote {out}", flush=True)
+
+
 def main(argv):
     signal.signal(signal.SIGINT, signal.default_int_handler)  # as the real CLI does
     mode = os.environ.get("FAKE_TRAINER_MODE", "ok")
+    if "propose" in argv:
+        return propose(argv, mode)
     if "dataset" in argv:
         return dataset(argv, mode)
     if "sfm" in argv:
