@@ -223,3 +223,24 @@ def test_propose_prompts_needs_the_promptgs_strategy(toy, tmp_path):
 
     with pytest.raises(PromptGSError, match="--propose-prompts needs --strategy promptgs"):
         TrainConfig(dataset=str(toy), out=str(tmp_path / "r"), strategy="3dgs", propose_prompts=True).validate()
+
+
+def test_propose_bad_input_is_a_one_line_error(toy, tmp_path, capsys):
+    from promptgs_engine.cli import main
+    from promptgs_engine.config import TrainConfig
+
+    def error_of(argv):
+        assert main(argv) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("promptgs: error: "), lines
+        return lines[0]
+
+    missing = tmp_path / "no_run"
+    assert error_of(["propose", str(missing)]) == f"promptgs: error: {missing}: not a PromptGS run folder (no cfg.json)"
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "cfg.json").write_text(json.dumps(TrainConfig(dataset=str(toy), out=str(run)).to_json()))
+    assert "no point_cloud.ply yet" in error_of(["propose", str(run)])
+    assert error_of(["propose", str(run), "--snapshot", str(tmp_path / "s.npz")]) == f"promptgs: error: {tmp_path / 's.npz'}: no such snapshot file"
+    np.savez(tmp_path / "bad.npz", means=np.zeros((2, 3), np.float32))
+    assert "not a PromptGS snapshot" in error_of(["propose", str(run), "--snapshot", str(tmp_path / "bad.npz")])
