@@ -187,7 +187,7 @@ class Dist:
 
         def on_sigterm(signum, frame):
             signal.signal(signal.SIGTERM, signal.SIG_IGN)  # report once
-            raise DistributedError(f"rank {self.rank}: stopped by the launcher (another rank failed)")
+            raise DistributedError(f"rank {self.rank}: stopped by the launcher (another rank failed, or the run was cancelled)")
 
         if threading.current_thread() is threading.main_thread():
             self._previous_sigterm = signal.signal(signal.SIGTERM, on_sigterm)
@@ -348,6 +348,9 @@ def launch(nproc: int, train_argv: Sequence[str], out: str | None, threads: int 
         "-m", "promptgs_engine", "train", *train_argv,
     ]
     proc = subprocess.Popen(command, env=env, stderr=subprocess.PIPE, text=True, errors="replace")
+    # Cancel (SIGINT, from the add-on or Ctrl-C) and SIGTERM go on to torchrun, which
+    # passes them to the ranks; rank 0 then keeps its last checkpoint and reports.
+    previous_term = signal.signal(signal.SIGTERM, lambda signum, frame: proc.send_signal(signal.SIGTERM))
     lines: list[str] = []
     assert proc.stderr is not None
     try:
@@ -357,9 +360,11 @@ def launch(nproc: int, train_argv: Sequence[str], out: str | None, threads: int 
             del lines[:-200]
         code = proc.wait()
     except KeyboardInterrupt:
-        # Ctrl-C reaches the whole process group: torchrun stops its ranks; wait for it.
-        code = proc.wait()
+        proc.send_signal(signal.SIGINT)
+        proc.wait()
         raise
+    finally:
+        signal.signal(signal.SIGTERM, previous_term)
     if code == 0:
         return 0
     print(f"promptgs: error: {failure_line(lines, code, out)}", file=sys.stderr, flush=True)
