@@ -60,7 +60,7 @@ def worker(args: argparse.Namespace) -> None:
     distributed.set_threads(ctx, "cpu", args.threads)
     cfg = TrainConfig(
         dataset=args.dataset, out=tempfile.mkdtemp(prefix="dist-bench-"), iterations=args.iterations,
-        seed=args.seed, backend="cpu", checkpoint_every=0,
+        seed=args.seed, backend="cpu", checkpoint_every=0, resolution_scale=args.resolution_scale,
     )
     scene = load_colmap_scene(cfg.dataset, test_every=cfg.test_every)
     trainer = Trainer(cfg, scene=scene, quiet=True, dist=ctx)
@@ -71,7 +71,10 @@ def worker(args: argparse.Namespace) -> None:
     def evaluate_now():
         if ctx.is_writer:
             with torch.no_grad():
-                psnr = evaluate(trainer.params, scene.test_cameras, backend="cpu", quiet=True, screen_filter=trainer.screen_filter)["psnr"]
+                psnr = evaluate(
+                    trainer.params, scene.test_cameras, downscale=cfg.downscale, backend="cpu", quiet=True,
+                    screen_filter=trainer.screen_filter,
+                )["psnr"]
             curve.append({"views": trainer.step * trainer.batch_size, "train_s": train_s, "psnr": psnr, "n_gaussians": trainer.n_gaussians})
 
     evaluate_now()
@@ -101,7 +104,7 @@ def worker(args: argparse.Namespace) -> None:
 def run_setup(name: str, args: argparse.Namespace, result: Path) -> dict:
     procs, threads = SETUPS[name]
     script = [str(Path(__file__).resolve()), "--worker", "--dataset", args.dataset, "--iterations", str(args.iterations),
-              "--seed", str(args.seed), "--eval-every", str(args.eval_every), "--threads", str(threads), "--result", str(result)]
+              "--seed", str(args.seed), "--eval-every", str(args.eval_every), "--resolution-scale", str(args.resolution_scale), "--threads", str(threads), "--result", str(result)]
     if procs > 1:
         command = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={procs}", *script]
     else:
@@ -204,6 +207,7 @@ def main() -> int:
     parser.add_argument("--eval-every", type=int, default=100, help="views between test evaluations")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--resolution-scale", type=float, default=1.0, help="train and evaluate at this fraction of the image size")
     parser.add_argument("--out", type=Path, default=Path("docs/results/distributed"))
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
@@ -227,6 +231,7 @@ def main() -> int:
     summary = summarize(runs)
     summary.update({
         "dataset": args.dataset, "iterations": args.iterations, "repeats": args.repeats, "seed": args.seed,
+        "resolution_scale": args.resolution_scale,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_before": load_before, "load_after": os.getloadavg()},
     })
     (args.out / "distributed.json").write_text(json.dumps({"summary": summary, "runs": runs}, indent=1))
