@@ -14,8 +14,10 @@ Each run is a worker process (``--worker``; the 2-rank one under
 Reported per set-up (medians over the rounds): training views per second, the training
 time to reach a target test PSNR (the lowest final PSNR of all runs minus 0.25 dB, so
 every run reaches it; interpolated between evaluations), the final PSNR and Gaussian
-count; and, from the 2-rank runs, the bytes of the step's all-reduce (gradients and
-densification statistics) against the Gaussian count.
+count, and the CPU seconds per view summed over every process and thread (the work,
+which a busy shared machine does not inflate as it inflates wall-clock time); and, from
+the 2-rank runs, the bytes of the step's all-reduce (gradients and densification
+statistics) against the Gaussian count.
 
 Writes ``distributed.json`` and ``distributed.png`` into ``--out``.
 
@@ -48,9 +50,10 @@ TARGET_MARGIN_DB = 0.25
 
 
 def worker(args: argparse.Namespace) -> None:
+    from promptgs_engine import distributed  # first: it sets OMP_WAIT_POLICY before torch loads OpenMP
+
     import torch
 
-    from promptgs_engine import distributed
     from promptgs_engine.config import TrainConfig
     from promptgs_engine.data import load_colmap_scene
     from promptgs_engine.evaluation import evaluate
@@ -65,7 +68,7 @@ def worker(args: argparse.Namespace) -> None:
     scene = load_colmap_scene(cfg.dataset, test_every=cfg.test_every)
     trainer = Trainer(cfg, scene=scene, quiet=True, dist=ctx)
     curve, comm = [], []
-    train_s = 0.0
+    train_s = cpu_s = 0.0
     next_eval = 0
 
     def evaluate_now():
@@ -80,9 +83,10 @@ def worker(args: argparse.Namespace) -> None:
     evaluate_now()
     while trainer.step < trainer.total_steps:
         n_before, bytes_before = trainer.n_gaussians, ctx.bytes_reduced
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         trainer.train_step()
         train_s += time.perf_counter() - t0
+        cpu_s += time.process_time() - c0  # every thread of this process
         trainer.step += 1
         if ctx.distributed:
             comm.append({"step": trainer.step, "n_gaussians": n_before, "bytes": ctx.bytes_reduced - bytes_before})
@@ -90,10 +94,12 @@ def worker(args: argparse.Namespace) -> None:
         if views >= next_eval + args.eval_every or trainer.step == trainer.total_steps:
             next_eval = views
             evaluate_now()
+    cpu_per_rank = ctx.all_gather_object(cpu_s)
     if ctx.is_writer:
         result = {
             "world_size": ctx.world_size, "threads": torch.get_num_threads(), "batch_size": trainer.batch_size,
             "steps": trainer.step, "views": trainer.step * trainer.batch_size, "train_s": train_s,
+            "cpu_s_per_rank": cpu_per_rank, "cpu_s_per_view": sum(cpu_per_rank) / (trainer.step * trainer.batch_size),
             "images_per_s": trainer.step * trainer.batch_size / train_s, "n_gaussians": trainer.n_gaussians,
             "final_psnr": curve[-1]["psnr"], "curve": curve, "comm": comm,
         }
@@ -109,7 +115,7 @@ def run_setup(name: str, args: argparse.Namespace, result: Path) -> dict:
         command = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={procs}", *script]
     else:
         command = [sys.executable, *script]
-    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads), OMP_WAIT_POLICY="PASSIVE")
     t0 = time.perf_counter()
     subprocess.run(command, env=env, check=True)
     out = json.loads(result.read_text())
@@ -144,6 +150,8 @@ def summarize(runs: dict[str, list[dict]]) -> dict:
             "final_psnr_median": statistics.median(r["final_psnr"] for r in rs),
             "n_gaussians_median": statistics.median(r["n_gaussians"] for r in rs),
             "train_s_median": statistics.median(r["train_s"] for r in rs),
+            "cpu_s_per_view_median": statistics.median(r["cpu_s_per_view"] for r in rs),
+            "busiest_process_cpu_s_median": statistics.median(max(r["cpu_s_per_rank"]) for r in rs),
         }
     base = out["setups"]["1 rank"]
     for s in out["setups"].values():
@@ -169,7 +177,7 @@ def plot(runs: dict[str, list[dict]], summary: dict, path: Path) -> None:
 
     names = list(runs)
     colors = {"1 rank": "tab:gray", "2 ranks": "tab:blue", "1 proc x 2 threads": "tab:orange"}
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+    fig, axes = plt.subplots(1, 4, figsize=(21, 4.8))
     ax = axes[0]
     med = [summary["setups"][n]["images_per_s_median"] for n in names]
     ax.bar(names, med, color=[colors[n] for n in names])
@@ -178,8 +186,17 @@ def plot(runs: dict[str, list[dict]], summary: dict, path: Path) -> None:
         ax.plot([i] * len(vals), vals, "k.", ms=5)
         ax.text(i, med[i], f"{med[i]:.2f}\n({summary['setups'][n]['speed_vs_1_rank']:.2f}x)", ha="center", va="bottom", fontsize=9)
     ax.set_ylabel("training views / s (median, dots: runs)")
-    ax.set_title("throughput")
+    ax.set_title("throughput (wall clock)")
     ax = axes[1]
+    med = [summary["setups"][n]["cpu_s_per_view_median"] for n in names]
+    ax.bar(names, med, color=[colors[n] for n in names])
+    for i, n in enumerate(names):
+        vals = [r["cpu_s_per_view"] for r in runs[n]]
+        ax.plot([i] * len(vals), vals, "k.", ms=5)
+        ax.text(i, med[i], f"{med[i]:.2f}", ha="center", va="bottom", fontsize=9)
+    ax.set_ylabel("CPU seconds per view, all processes and threads")
+    ax.set_title("work per view")
+    ax = axes[2]
     for n in names:
         for k, r in enumerate(runs[n]):
             ax.plot([c["train_s"] for c in r["curve"]], [c["psnr"] for c in r["curve"]], "-", color=colors[n], alpha=0.8, label=n if k == 0 else None)
@@ -188,14 +205,18 @@ def plot(runs: dict[str, list[dict]], summary: dict, path: Path) -> None:
     ax.set_ylabel("test PSNR (dB)")
     ax.set_title("time to a target PSNR")
     ax.legend(fontsize=8)
-    ax = axes[2]
+    ax = axes[3]
     comm = [c for r in runs.get("2 ranks", []) for c in r["comm"]]
     if comm:
         ax.plot([c["n_gaussians"] / 1e3 for c in comm], [c["bytes"] / 2**20 for c in comm], ".", ms=3, color="tab:blue")
     ax.set_xlabel("Gaussians (thousands)")
     ax.set_ylabel("all-reduce payload per step (MiB)")
     ax.set_title("communication, 2 ranks")
-    fig.suptitle(f"data-parallel 3DGS on {Path(summary['dataset']).name}, {summary['iterations']} views, CPU (gloo)")
+    load = summary["machine"]["load_during"]
+    fig.suptitle(
+        f"data-parallel 3DGS on {Path(summary['dataset']).name} ({summary['iterations']} views, resolution x{summary['resolution_scale']:g}), "
+        f"2-core CPU, gloo; machine shared: 1-min load {min(load):.0f}-{max(load):.0f}"
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -218,6 +239,7 @@ def main() -> int:
         return 0
     args.out.mkdir(parents=True, exist_ok=True)
     load_before = os.getloadavg()
+    loads = [load_before[0]]
     runs: dict[str, list[dict]] = {name: [] for name in SETUPS}
     names = list(SETUPS)
     with tempfile.TemporaryDirectory() as tmp:
@@ -226,13 +248,15 @@ def main() -> int:
             for name in order:
                 r = run_setup(name, args, Path(tmp) / "result.json")
                 runs[name].append(r)
+                loads.append(os.getloadavg()[0])
                 print(f"round {round_ + 1}: {name}: {r['images_per_s']:.2f} views/s, PSNR {r['final_psnr']:.2f} dB, "
                       f"{r['n_gaussians']} Gaussians, load {os.getloadavg()[0]:.1f}", flush=True)
     summary = summarize(runs)
     summary.update({
         "dataset": args.dataset, "iterations": args.iterations, "repeats": args.repeats, "seed": args.seed,
         "resolution_scale": args.resolution_scale,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_before": load_before, "load_after": os.getloadavg()},
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_before": load_before, "load_after": os.getloadavg(),
+                    "load_during": loads},
     })
     (args.out / "distributed.json").write_text(json.dumps({"summary": summary, "runs": runs}, indent=1))
     plot(runs, summary, args.out / "distributed.png")
