@@ -28,6 +28,7 @@ from promptgs_engine.cli import main
 from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.distributed import Dist, DistributedError
+from promptgs_engine.errors import PromptGSError
 from promptgs_engine.strategies import DefaultSchedule
 from promptgs_engine.train import Trainer
 
@@ -305,6 +306,26 @@ def test_bad_process_options_are_one_line_errors(toy, tmp_path, capsys):
     assert main(["train", str(toy), "--out", str(tmp_path / "b"), "--batch-size", "0"]) == 2
     assert "--batch-size must be a positive whole number of views" in capsys.readouterr().err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_ranks_take_photos_only_once_reconstructed(tmp_path, monkeypatch):
+    """Ranks never run SfM side by side into one folder: under torchrun with several
+    ranks, photos need the reconstruction that `--nproc` makes before it starts them."""
+    from promptgs_engine import cli
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "a.jpg").write_bytes(b"")
+    args = cli.build_parser().parse_args(["train", str(photos), "--out", str(tmp_path / "run")])
+    cfg = cli.train_config_from_args(args)
+    with pytest.raises(PromptGSError, match=r"reconstructed before the ranks start: use `promptgs train --nproc N`"):
+        cli._sfm_first(cfg, args, None, ranks=2)
+    assert cfg.dataset == str(photos) and not (tmp_path / "run").exists()
+    # A finished reconstruction in the run folder is what every rank trains on.
+    monkeypatch.setattr("promptgs_engine.sfm.pipeline.finished_summary", lambda folder: {"status": "ok"})
+    monkeypatch.setattr("promptgs_engine.sfm.chain.finished_summary", lambda folder: {"status": "ok"})
+    cli._sfm_first(cfg, args, None, ranks=2)
+    assert cfg.dataset == str(tmp_path / "run" / "sfm")
 
 
 def test_failure_line_names_the_killed_rank():
