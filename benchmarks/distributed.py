@@ -82,14 +82,18 @@ def worker(args: argparse.Namespace) -> None:
 
     evaluate_now()
     while trainer.step < trainer.total_steps:
-        n_before, bytes_before = trainer.n_gaussians, ctx.bytes_reduced
+        n_before, bytes_before, reduce_before = trainer.n_gaussians, ctx.bytes_reduced, ctx.seconds_reduced
         t0, c0 = time.perf_counter(), time.process_time()
         trainer.train_step()
-        train_s += time.perf_counter() - t0
+        step_s = time.perf_counter() - t0
+        train_s += step_s
         cpu_s += time.process_time() - c0  # every thread of this process
         trainer.step += 1
         if ctx.distributed:
-            comm.append({"step": trainer.step, "n_gaussians": n_before, "bytes": ctx.bytes_reduced - bytes_before})
+            comm.append({
+                "step": trainer.step, "n_gaussians": n_before, "bytes": ctx.bytes_reduced - bytes_before,
+                "allreduce_s": ctx.seconds_reduced - reduce_before, "step_s": step_s,
+            })
         views = trainer.step * trainer.batch_size
         if views >= next_eval + args.eval_every or trainer.step == trainer.total_steps:
             next_eval = views
@@ -165,6 +169,10 @@ def summarize(runs: dict[str, list[dict]]) -> dict:
             "bytes_per_gaussian_min": min(bytes_per_gaussian),
             "bytes_per_gaussian_max": max(bytes_per_gaussian),
             "note": "one rank's all-reduce payload per step; a ring all-reduce sends and receives 2(W-1)/W of it per rank",
+            # rank 0's wall time inside the all-reduce: gloo's transfer over loopback plus
+            # waiting for rank 1 to finish its view
+            "allreduce_share_of_step_median": statistics.median(c["allreduce_s"] / c["step_s"] for c in comm),
+            "allreduce_s_median": statistics.median(c["allreduce_s"] for c in comm),
         }
     return out
 

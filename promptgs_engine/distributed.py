@@ -31,6 +31,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -86,6 +87,7 @@ class Dist:
     backend: str | None = None  # "gloo" | "nccl" once a process group exists
     timeout_s: float = DEFAULT_TIMEOUT_S
     bytes_reduced: int = 0  # payload of all_reduce_sum so far (this rank's buffer)
+    seconds_reduced: float = 0.0  # wall time in all_reduce_sum so far (gloo: transfer and waiting for slower ranks; NCCL: the launch only)
     _previous_sigterm: Any = field(default=None, repr=False)
 
     @property
@@ -124,7 +126,9 @@ class Dist:
 
         flat = torch.cat([t.reshape(-1) for t in tensors])
         self.bytes_reduced += flat.numel() * flat.element_size()
+        t0 = time.perf_counter()
         self._call(what, dist.all_reduce, flat, op=dist.ReduceOp.SUM)
+        self.seconds_reduced += time.perf_counter() - t0
         out, offset = [], 0
         for t in tensors:
             out.append(flat[offset : offset + t.numel()].view(t.shape))
