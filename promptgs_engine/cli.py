@@ -66,6 +66,18 @@ def _add_train(sub) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace a run already in --out")
     p.add_argument("--events", action="store_true", help="JSON-lines events on stdout (for the Blender add-on)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    dist = p.add_argument_group("several processes (docs/distributed.md)")
+    dist.add_argument(
+        "--nproc", type=int,
+        help="train with N processes on this machine (starts torchrun; job file key 'nproc'); "
+        "under torchrun the launcher decides and this is ignored",
+    )
+    dist.add_argument("--batch-size", type=int, help="views per step over all processes (default: one per process)")
+    dist.add_argument("--threads", type=int, help="OpenMP threads per process (default: cores / processes on the CPU backend)")
+    dist.add_argument(
+        "--dist-timeout", type=float,
+        help="seconds a process waits for the others before the run stops with an error (default 300)",
+    )
     from .sfm.cli import add_sfm_options
 
     add_sfm_options(p)
@@ -75,7 +87,10 @@ def _add_train(sub) -> None:
 _TRAIN_KEYS = (
     "dataset", "out", "images", "iterations", "backend", "strategy", "seed", "resolution_scale",
     "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "propose_prompts", "sky", "progressive", "screen_filter", "antialiased", "snapshot_every", "checkpoint_every",
+    "batch_size",
 )
+# Job-file keys that say how to run, not what to train (not TrainConfig fields).
+_RUN_KEYS = ("nproc",)
 
 
 def train_config_from_args(args: argparse.Namespace):
@@ -91,6 +106,10 @@ def train_config_from_args(args: argparse.Namespace):
             raise PromptGSError(f"{args.job}: a job file holds one JSON object")
         for flag in ("resume", "overwrite"):
             settings.pop(flag, None)
+        for key in _RUN_KEYS:
+            value = settings.pop(key, None)
+            if getattr(args, key, None) is None:
+                setattr(args, key, value)
     for key in _TRAIN_KEYS:
         value = getattr(args, key)
         if value is not None:
@@ -102,28 +121,54 @@ def train_config_from_args(args: argparse.Namespace):
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    from . import distributed
     from .events import EventWriter
-    from .train import run_training
+    from .train import resolve_backend, run_training
 
     cfg = train_config_from_args(args)
-    events = EventWriter.stdout() if args.events else None
-    _sfm_first(cfg, args, events)
-    metrics = run_training(cfg, resume=args.resume, overwrite=args.overwrite, events=events, quiet=args.quiet)
-    if not args.events:
+    nproc = args.nproc
+    if nproc is not None and (isinstance(nproc, bool) or not isinstance(nproc, int) or nproc < 1):
+        raise PromptGSError(f"nproc must be a positive whole number of processes, got {nproc!r}")
+    if nproc and nproc > 1 and not distributed.launched_by_torchrun():
+        # Photos or a video are reconstructed once, here, before the ranks start; the
+        # ranks then find the finished reconstruction in OUT/sfm.
+        _sfm_first(cfg, args, EventWriter.stdout() if args.events else None)
+        argv = list(getattr(args, "argv", None) or [])
+        forwarded = distributed.strip_option(argv[argv.index("train") + 1 :], "--nproc")
+        return distributed.launch(nproc, forwarded, out=cfg.out, threads=args.threads)
+    backend = resolve_backend(cfg.backend)
+    ctx = distributed.init_from_env(backend, timeout_s=args.dist_timeout or distributed.DEFAULT_TIMEOUT_S)
+    try:
+        distributed.set_threads(ctx, backend, args.threads)
+        events = EventWriter.stdout() if args.events and ctx.is_writer else None
+        _sfm_first(cfg, args, events, ranks=ctx.world_size)
+        metrics = run_training(cfg, resume=args.resume, overwrite=args.overwrite, events=events, quiet=args.quiet, dist=ctx)
+    finally:
+        ctx.close()
+    if not args.events and ctx.is_writer:
         _print_metrics(metrics)
     return 0
 
 
-def _sfm_first(cfg, args: argparse.Namespace, events) -> None:
-    """Photos or a video as DATASET: reconstruct them into OUT/sfm and train on that."""
+def _sfm_first(cfg, args: argparse.Namespace, events, ranks: int = 1) -> None:
+    """Photos or a video as DATASET: reconstruct them into OUT/sfm and train on that.
+    Ranks of a distributed run (``ranks`` > 1) only take a reconstruction already there:
+    `promptgs train --nproc` makes it before it starts them."""
     from .sfm import needs_sfm, sfm_dataset_for_run
+    from .sfm.chain import SFM_FOLDER
     from .sfm.cli import sfm_options_from_args
+    from .sfm.pipeline import finished_summary
 
     dataset = Path(cfg.dataset).expanduser()
     if not needs_sfm(dataset):
         return
     if cfg.images != "images":
         raise PromptGSError(f"{dataset}: --images names a folder inside a COLMAP dataset; photos or a video are reconstructed first and take no --images")
+    if ranks > 1 and finished_summary(Path(cfg.out) / SFM_FOLDER) is None:
+        raise PromptGSError(
+            f"{dataset}: photos or a video are reconstructed before the ranks start: use `promptgs train --nproc N`, "
+            "or `promptgs sfm` first and train the ranks on its dataset"
+        )
     cfg.dataset = str(sfm_dataset_for_run(dataset, Path(cfg.out), sfm_options_from_args(args), events=events, quiet=args.quiet))
 
 
@@ -212,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # `train --nproc` hands them to torchrun
     try:
         return args.func(args)
     except PromptGSError as exc:

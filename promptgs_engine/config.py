@@ -61,6 +61,9 @@ class TrainConfig:
     screen_filter: float | None = None  # px² at full size; None: PROMPTGS_SCREEN_FILTER for promptgs, else BASELINE_SCREEN_FILTER
     antialiased: bool = False  # opacity compensation of the screen filter (--antialiased), any strategy
     sky: bool = True  # start a far shell of Gaussians where the cameras see background (see sky.py)
+    # Views per optimisation step, over all ranks; None: one per rank. The learning rates,
+    # Adam and the schedule follow batch.py's rules; `iterations` counts views.
+    batch_size: int | None = None
     extra: dict = field(default_factory=dict)
 
     @property
@@ -110,6 +113,10 @@ class TrainConfig:
         if self.propose_prompts and self.strategy != "promptgs":
             raise PromptGSError(f"--propose-prompts needs --strategy promptgs (got {self.strategy!r}); "
                                 "`promptgs propose RUN` proposes from any finished run")
+        if self.batch_size is not None and (
+            isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1
+        ):
+            raise PromptGSError(f"--batch-size must be a positive whole number of views, got {self.batch_size!r}")
         if not isinstance(self.antialiased, bool):
             raise PromptGSError(f"antialiased must be true or false, got {self.antialiased!r}")
         self.downscale  # validates resolution_scale
@@ -135,4 +142,6 @@ class TrainConfig:
             # Runs written before the setting existed rendered with 3DGS's filter (and, with no
             # `antialiased` key, the classic mode: the field's default).
             data.setdefault("screen_filter", BASELINE_SCREEN_FILTER)
+            # ... and with one view a step.
+            data.setdefault("batch_size", 1)
         return cls.from_json(data)

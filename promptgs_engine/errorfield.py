@@ -198,12 +198,24 @@ class ErrorField:
         [H, W] and add it. ``alpha`` is the rendered alpha [H, W] (pixels below
         ``min_alpha`` are skipped) or a bool mask, or None (all pixels). Call once per view
         with the training step; several views of one step share the same ``step``."""
+        pts, vals = self.view_points(loss_map, depth, alpha, camera, top_q)
+        return self.add_points(pts, vals, step)
+
+    def view_points(
+        self,
+        loss_map: torch.Tensor,
+        depth: torch.Tensor,
+        alpha: torch.Tensor | None,
+        camera: CameraLike,
+        top_q: float | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The world points and losses `accumulate` would add for one view (arguments as
+        there), without adding them."""
         mask = None
         if alpha is not None:
             a = alpha.detach().cpu() if isinstance(alpha, torch.Tensor) else torch.as_tensor(np.asarray(alpha))
             mask = a if a.dtype == torch.bool else a.double() >= self.min_alpha
-        pts, vals = backproject(loss_map, depth, mask, camera, top_q)
-        return self.add_points(pts, vals, step)
+        return backproject(loss_map, depth, mask, camera, top_q)
 
     # -- queries --------------------------------------------------------------------------
     def _lookup(self, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -129,6 +129,8 @@ class PromptFocus:
         cap = views_cap_from_memory(bytes_per_view, available_memory_bytes(), max_views=max_views)
         self.schedule = ViewSchedule(len(self.cameras), max_views_per_step=max(cap, 1), seed=cfg.seed)
         self.generator = torch.Generator().manual_seed(cfg.seed)
+        # When a list, observe() leaves error-field points here instead of adding them (batch.py).
+        self.field_sink: list | None = None
         self.set_prompts(prompts)
 
     # -- prompts ----------------------------------------------------------------------
@@ -164,19 +166,21 @@ class PromptFocus:
         width = self.full_cameras[0].width
         coarsest = max([1] + [f for f in PROGRESSIVE_LEVELS if width // f >= MIN_PROGRESSIVE_WIDTH])
         levels = [min(f, coarsest) for f in PROGRESSIVE_LEVELS]
-        stage = int(step / (PROGRESSIVE_FRACTION * self.trainer.cfg.iterations))
+        stage = int(step / (PROGRESSIVE_FRACTION * self.trainer.total_steps))
         return levels[stage] if stage < len(levels) else 1
 
-    def is_statistics_step(self, step: int, kind: str) -> bool:
+    def is_statistics_step(self, step: int, kind: str, entry: int | None = None) -> bool:
         """Whether a whole-view step renders at full size although the progressive
-        schedule is below it: every FULL_SIZE_EVERY-th single-view step while
-        densification runs. The PromptGS strategy takes its growth statistics from
-        full-size steps only, so the Gaussians grow where full-resolution gradients ask
-        for them, as in 3DGS (about 30% of the steps in that part of the run)."""
+        schedule is below it: every FULL_SIZE_EVERY-th single-view step (schedule
+        ``entry``, the step itself at one entry a step) while densification runs. The
+        PromptGS strategy takes its growth statistics from full-size steps only, so the
+        Gaussians grow where full-resolution gradients ask for them, as in 3DGS (about 30%
+        of the steps in that part of the run)."""
         sched = self.trainer.schedule
+        entry = step if entry is None else entry
         return (
             self.downscale_at(step) > 1 and step < sched.refine_stop_iter
-            and kind == SINGLE and step % FULL_SIZE_EVERY == 0
+            and kind == SINGLE and entry % FULL_SIZE_EVERY == 0
         )
 
     def _crop_views(self, region: int, views: list[int]) -> list[TrainView]:
@@ -203,13 +207,17 @@ class PromptFocus:
         size = (out[0].camera.width, out[0].camera.height)
         return [t for t in out if (t.camera.width, t.camera.height) == size]
 
-    def plan(self, step: int) -> list[TrainView]:
-        batch = self.schedule.batch(step)
+    def plan(self, step: int, entry: int | None = None) -> list[TrainView]:
+        """The views of schedule ``entry`` (default: ``step``, one entry a step) at
+        training step ``step``; a batch of several views a step takes several entries
+        (batch.py)."""
+        entry = step if entry is None else entry
+        batch = self.schedule.batch(entry)
         if batch.kind == RELATED_MULTIVIEW and batch.region is not None and self.prompts:
             views = self._crop_views(batch.region, batch.views)
             if views:
                 return views
-        factor = 1 if self.is_statistics_step(step, batch.kind) else self.downscale_at(step)
+        factor = 1 if self.is_statistics_step(step, batch.kind, entry) else self.downscale_at(step)
         screen_filter = LOW_RES_SCREEN_FILTER if factor > 1 else None
         out = []
         for v in batch.views:
@@ -256,7 +264,10 @@ class PromptFocus:
             return
         loss_map = 0.8 * l1_map + 0.2 * dssim_map
         for i, v in enumerate(views):
-            self.field.accumulate(loss_map[i], depth[i], alpha[i], v.camera, step=step, top_q=0.1)
+            if self.field_sink is not None:  # a batched step adds every rank's points in order
+                self.field_sink.append(self.field.view_points(loss_map[i], depth[i], alpha[i], v.camera, top_q=0.1))
+            else:
+                self.field.accumulate(loss_map[i], depth[i], alpha[i], v.camera, step=step, top_q=0.1)
 
     def after_step(self, step: int) -> None:
         sched = self.trainer.schedule

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -20,8 +21,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from .batch import BatchedSteps, adam_settings, scale_schedule, steps_for
 from .config import TrainConfig
 from .data import Camera, Scene, load_colmap_scene
+from .distributed import RANK_PARAMS_ENV, Dist
 from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
@@ -62,8 +65,9 @@ def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
         raise PromptGSError(f"{out}: holds an unfinished run (use --resume to continue it, or --overwrite)")
 
 
-def make_optimizers(params: torch.nn.ParameterDict, cfg: TrainConfig, extent: float) -> dict:
-    """One Adam per parameter, as gsplat's strategies expect (one param group each)."""
+def make_optimizers(params: torch.nn.ParameterDict, cfg: TrainConfig, extent: float, batch_size: int = 1) -> dict:
+    """One Adam per parameter, as gsplat's strategies expect (one param group each), with
+    the batch rules of `batch.adam_settings` (a batch of one: 3DGS's settings)."""
     lrs = {
         "means": cfg.means_lr * extent,
         "scales": cfg.scales_lr,
@@ -74,10 +78,13 @@ def make_optimizers(params: torch.nn.ParameterDict, cfg: TrainConfig, extent: fl
     }
     # The fused implementation is about 3x faster on the CPU (9 ms vs 28 ms for 100k
     # Gaussians, benchmarks/rasterizer.py) and keeps the same state layout.
-    return {
-        k: torch.optim.Adam([{"params": [params[k]], "lr": lrs[k], "name": k}], eps=1e-15, fused=True)
-        for k in PARAM_KEYS
-    }
+    optimizers = {}
+    for k in PARAM_KEYS:
+        adam = adam_settings(lrs[k], batch_size)
+        optimizers[k] = torch.optim.Adam(
+            [{"params": [params[k]], "lr": adam["lr"], "name": k}], eps=adam["eps"], betas=adam["betas"], fused=True
+        )
+    return optimizers
 
 
 def atomic_torch_save(obj: Any, path: Path) -> None:
@@ -101,9 +108,14 @@ class Trainer:
         scene: Scene | None = None,
         events: EventWriter | None = None,
         quiet: bool = False,
+        dist: Dist | None = None,
     ):
         cfg.validate()
         self.cfg = cfg
+        # Several ranks (distributed.py), or several views a step (batch.py).
+        self.dist = dist or Dist()
+        self.batch_size = int(cfg.batch_size or self.dist.world_size)
+        self.total_steps = steps_for(cfg.iterations, self.batch_size)
         self.out = Path(cfg.out)
         self.events = events or EventWriter()
         self.quiet = quiet or self.events.enabled
@@ -114,7 +126,7 @@ class Trainer:
             raise PromptGSError(f"{cfg.dataset}: no training images")
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
-        self.schedule = DefaultSchedule.for_iterations(cfg.iterations)
+        self.schedule = scale_schedule(DefaultSchedule.for_iterations(cfg.iterations), self.batch_size)
         self.screen_filter = cfg.effective_screen_filter
         points, colors = self.scene.points.float(), self.scene.point_colors.float()
         self.n_sky_points = 0
@@ -126,8 +138,8 @@ class Trainer:
         self.params = init_from_points(
             points, colors, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity
         ).to(self.device)
-        self.optimizers = make_optimizers(self.params, cfg, self.scene.extent)
-        gamma = 0.01 ** (1.0 / cfg.iterations)
+        self.optimizers = make_optimizers(self.params, cfg, self.scene.extent, self.batch_size)
+        gamma = 0.01 ** (1.0 / self.total_steps)
         self.schedulers = [torch.optim.lr_scheduler.ExponentialLR(self.optimizers["means"], gamma=gamma)]
         self.strategy = self._make_strategy()
         self.strategy.loss_probe = self.probe_loss
@@ -143,6 +155,7 @@ class Trainer:
 
             self.focus = PromptFocus(self, load_prompt_setting(cfg))
             self.strategy.attention_fn = lambda pts: self.focus.field.attention(pts.cpu(), self.focus.prompts)
+        self.batched = BatchedSteps(self) if self.dist.distributed or self.batch_size > 1 else None
 
     # -- set-up -----------------------------------------------------------------------
 
@@ -239,7 +252,17 @@ class Trainer:
         camera = self.scene.train_cameras[index].downscaled(self.cfg.downscale)
         return [TrainView(camera, camera.load_image(), index)]
 
+    def image_loss(self, img: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(loss, L1 map, D-SSIM map) of renders [C, H, W, 3] against ground truth: the loss
+        is (1 − λ)·L1 + λ·D-SSIM from per-pixel maps, which PromptGS reuses for its scores."""
+        l1_map = (img - gt).abs().mean(dim=-1)
+        dssim_map = (1.0 - ssim_map(img, gt)).mean(dim=-1)
+        loss = (1.0 - self.cfg.ssim_lambda) * l1_map.mean() + self.cfg.ssim_lambda * dssim_map.mean()
+        return loss, l1_map, dssim_map
+
     def train_step(self) -> StepResult:
+        if self.batched is not None:
+            return self.batched.train_step()
         step = self.step
         views = self.plan_step(step)
         cameras = [v.camera for v in views]
@@ -251,10 +274,7 @@ class Trainer:
             render_mode="RGB+ED" if with_depth else "RGB",
         )
         img = out[..., :3]
-        # (1 − λ)·L1 + λ·D-SSIM from per-pixel maps, which PromptGS reuses for its scores.
-        l1_map = (img - gt).abs().mean(dim=-1)
-        dssim_map = (1.0 - ssim_map(img, gt)).mean(dim=-1)
-        loss = (1.0 - self.cfg.ssim_lambda) * l1_map.mean() + self.cfg.ssim_lambda * dssim_map.mean()
+        loss, l1_map, dssim_map = self.image_loss(img, gt)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
         loss.backward()
         loss_value = loss.item()
@@ -265,6 +285,14 @@ class Trainer:
                 step, views, img.detach(), l1_map.detach(), dssim_map.detach(),
                 out[..., 3].detach() if with_depth else None, alpha[..., 0].detach(), info,
             )
+        self.update(step, info)
+        with torch.no_grad():
+            mse = float(((img.detach() - gt) ** 2).mean())
+        return StepResult(loss=loss_value, psnr=mse_to_psnr(mse))
+
+    def update(self, step: int, info: dict) -> None:
+        """Apply the step's gradients, then the schedules, the strategy's refinement and
+        PromptGS's bookkeeping."""
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
@@ -274,9 +302,6 @@ class Trainer:
         if self.focus is not None:
             self.focus.after_step(step)
         self.check_finite()
-        with torch.no_grad():
-            mse = float(((img.detach() - gt) ** 2).mean())
-        return StepResult(loss=loss_value, psnr=mse_to_psnr(mse))
 
     def check_finite(self) -> None:
         for key, value in self.params.items():
@@ -304,10 +329,12 @@ class Trainer:
             "order": list(self._order),
             "torch_rng": torch.get_rng_state(),
             "focus": self.focus.state_dict() if self.focus is not None else None,
+            "batch": self.batched.state_dict() if self.batched is not None else {"entry": self.step},
         }
 
     def save_checkpoint(self) -> None:
-        atomic_torch_save(self.checkpoint_dict(), self.out / CHECKPOINT)
+        if self.dist.is_writer:
+            atomic_torch_save(self.checkpoint_dict(), self.out / CHECKPOINT)
 
     def load_checkpoint(self, path: Path) -> None:
         try:
@@ -317,10 +344,10 @@ class Trainer:
         self.params = torch.nn.ParameterDict(
             {k: torch.nn.Parameter(v.to(self.device)) for k, v in ckpt["params"].items()}
         )
-        self.optimizers = make_optimizers(self.params, self.cfg, self.scene.extent)
+        self.optimizers = make_optimizers(self.params, self.cfg, self.scene.extent, self.batch_size)
         for k, opt in self.optimizers.items():
             opt.load_state_dict(ckpt["optimizers"][k])
-        gamma = 0.01 ** (1.0 / self.cfg.iterations)
+        gamma = 0.01 ** (1.0 / self.total_steps)
         self.schedulers = [torch.optim.lr_scheduler.ExponentialLR(self.optimizers["means"], gamma=gamma)]
         for s, state in zip(self.schedulers, ckpt["schedulers"]):
             s.load_state_dict(state)
@@ -334,8 +361,13 @@ class Trainer:
         self.train_seconds = float(ckpt["train_seconds"])
         if self.focus is not None and ckpt.get("focus"):
             self.focus.load_state_dict(ckpt["focus"])
+        if self.batched is not None:
+            # A checkpoint of a run at one view a step has consumed one schedule entry a step.
+            self.batched.load_state_dict(ckpt.get("batch") or {"entry": self.step})
 
-    def snapshot(self) -> Path:
+    def snapshot(self) -> Path | None:
+        if not self.dist.is_writer:
+            return None
         folder = self.out / "snapshots"
         folder.mkdir(exist_ok=True)
         path = folder / f"step_{self.step:06d}.npz"
@@ -359,42 +391,49 @@ class Trainer:
         self.events.emit(
             "start",
             out=str(self.out),
-            iterations=cfg.iterations,
+            iterations=self.total_steps,
             backend=self.backend,
             strategy=cfg.strategy,
             n_train=len(self.scene.train_cameras),
             n_test=len(self.scene.test_cameras),
             n_gaussians=self.n_gaussians,
         )
-        bar = tqdm(total=cfg.iterations, initial=self.step, desc=f"train {cfg.strategy}", disable=self.quiet, unit="step")
+        bar = tqdm(total=self.total_steps, initial=self.step, desc=f"train {cfg.strategy}", disable=self.quiet, unit="step")
         loss_ema: float | None = None
-        while self.step < cfg.iterations:
+        while self.step < self.total_steps:
             t0 = time.perf_counter()
             result = self.train_step()
             self.train_seconds += time.perf_counter() - t0
             self.step += 1
             loss_ema = result.loss if loss_ema is None else 0.9 * loss_ema + 0.1 * result.loss
             bar.update(1)
-            if self.step % cfg.progress_every == 0 or self.step == cfg.iterations:
+            if self.step % cfg.progress_every == 0 or self.step == self.total_steps:
                 bar.set_postfix(loss=f"{loss_ema:.4f}", psnr=f"{result.psnr:.2f}", n=self.n_gaussians)
                 per_step = self.train_seconds / max(self.step, 1)
                 self.events.emit(
                     "progress",
                     step=self.step,
-                    iterations=cfg.iterations,
+                    iterations=self.total_steps,
                     loss=loss_ema,
                     psnr=result.psnr,
                     n_gaussians=self.n_gaussians,
                     elapsed_s=self.train_seconds,
-                    eta_s=per_step * (cfg.iterations - self.step),
+                    eta_s=per_step * (self.total_steps - self.step),
                 )
             if cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
                 self.save_checkpoint()
             if cfg.snapshot_every and self.step % cfg.snapshot_every == 0:
                 self.snapshot()
         bar.close()
+        self.dist.check_agreement(self.step, self.params)
+        if os.environ.get(RANK_PARAMS_ENV):
+            atomic_torch_save(
+                {k: v.detach().cpu() for k, v in self.params.items()},
+                Path(os.environ[RANK_PARAMS_ENV]) / f"rank{self.dist.rank}.pt",
+            )
         self.save_checkpoint()
-        save_ply(self.params, self.out / FINAL_PLY)
+        if self.dist.is_writer:
+            save_ply(self.params, self.out / FINAL_PLY)
         if self.events.enabled and not cfg.snapshot_every:
             self.snapshot()
         log.info("trained %d steps in %.1f s, %d Gaussians", self.step, self.train_seconds, self.n_gaussians)
@@ -411,6 +450,8 @@ class Trainer:
             "budget": self.cfg.budget,
             "auto_budget": self.strategy_state.get("auto_budget"),
             "sky_points": self.n_sky_points,
+            "world_size": self.dist.world_size,
+            "batch_size": self.batch_size,
         }
 
 
@@ -439,18 +480,23 @@ def run_training(
     overwrite: bool = False,
     events: EventWriter | None = None,
     quiet: bool = False,
+    dist: Dist | None = None,
 ) -> dict:
     """Train a run folder from start (or from its checkpoint), evaluate it, return metrics.
 
     The dataset is read before anything is written, so bad input leaves ``cfg.out``
     untouched. On failure the error is logged and sent as an event, and the last good
-    checkpoint stays in the run folder.
+    checkpoint stays in the run folder. In a distributed run (``dist``) every rank trains
+    and rank 0 alone writes the run folder, sends events and evaluates; the other ranks
+    return an empty dict.
     """
     import json
 
     from .evaluation import SUMMARY, evaluate_run
 
-    events = events or EventWriter()
+    dist = dist or Dist()
+    writer = dist.is_writer
+    events = (events or EventWriter()) if writer else EventWriter()
     out = Path(cfg.out)
     check_out_dir(out, resume, overwrite)
     if resume and not (out / CHECKPOINT).is_file():
@@ -460,23 +506,32 @@ def run_training(
         saved.iterations = cfg.iterations  # a resumed run may be extended
         cfg = saved
     cfg.validate()
+    # The run folder records its views per step: a resumed run keeps them at any world size.
+    cfg.batch_size = int(cfg.batch_size or dist.world_size)
     # The run folder records the filter its renders use (evaluation renders with it too).
     cfg.screen_filter = cfg.effective_screen_filter
     scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
-    out.mkdir(parents=True, exist_ok=True)
-    if overwrite and not resume:
-        for name in (CHECKPOINT, FINAL_PLY, "metrics.json", SUMMARY):
-            (out / name).unlink(missing_ok=True)
-    (out / "cfg.json").write_text(json.dumps(cfg.to_json(), indent=2))
+    dist.barrier("the start (every rank reads the run folder before rank 0 writes it)")
     log_path = out / "train.log"
-    handler = _attach_log_file(log_path)
+    handler = None
+    if writer:
+        out.mkdir(parents=True, exist_ok=True)
+        if overwrite and not resume:
+            for name in (CHECKPOINT, FINAL_PLY, "metrics.json", SUMMARY):
+                (out / name).unlink(missing_ok=True)
+        (out / "cfg.json").write_text(json.dumps(cfg.to_json(), indent=2))
+        handler = _attach_log_file(log_path)
     trainer = None
     try:
-        trainer = Trainer(cfg, scene=scene, events=events, quiet=quiet)
+        trainer = Trainer(cfg, scene=scene, events=events, quiet=quiet or not writer, dist=dist)
         if resume:
             trainer.load_checkpoint(out / CHECKPOINT)
             log.info("resumed at step %d", trainer.step)
+        if dist.distributed:
+            log.info("%d ranks (%s), %d views a step", dist.world_size, dist.backend, trainer.batch_size)
         summary = trainer.train()
+        if not writer:
+            return {}
         (out / SUMMARY).write_text(json.dumps(summary, indent=2))
         metrics = evaluate_run(out, scene=scene, quiet=trainer.quiet, save_renders=cfg.save_test_renders)
         events.emit("done", out=str(out), ply=str(out / FINAL_PLY), metrics={k: v for k, v in metrics.items() if k != "per_image"})
@@ -484,9 +539,11 @@ def run_training(
     except (Exception, KeyboardInterrupt) as exc:
         step = trainer.step if trainer is not None else None
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        log.exception("training failed at step %s", step)
+        if writer:
+            log.exception("training failed at step %s", step)
         events.emit("error", message=message, step=step, log=str(log_path))
         raise
     finally:
-        logging.getLogger("promptgs").removeHandler(handler)
-        handler.close()
+        if handler is not None:
+            logging.getLogger("promptgs").removeHandler(handler)
+            handler.close()

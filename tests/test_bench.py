@@ -138,6 +138,25 @@ def test_failed_cell_is_recorded_with_its_message_and_retried(tmp_path: Path):
     assert [j["strategy"] for j in retry.jobs] == ["absgs"]
 
 
+def test_a_grid_of_several_processes_asks_each_cell_for_them(tmp_path: Path):
+    grid = Grid(scenes=[_scene(tmp_path)], methods=["3dgs"], iterations=[10], nproc=2)
+    fake = FakeTrainer()
+    rows = run_grid(grid, tmp_path / "b", run=fake, quiet=True)
+    assert fake.jobs[0]["nproc"] == 2  # the job-file key the trainer honours
+    assert rows[0]["cell"] == "s/3dgs/none/i10/s0/p2" and rows[0]["nproc"] == 2
+    # One bench folder holds one process count: the default batch follows it.
+    with pytest.raises(PromptGSError, match="trained with 2 processes, this grid asks for 1"):
+        run_grid(Grid(scenes=[_scene_again(tmp_path)], methods=["3dgs"], iterations=[10]), tmp_path / "b", run=fake, quiet=True)
+    args = cli.build_parser().parse_args(["bench", "--scene", str(tmp_path), "--nproc", "3", "--out", str(tmp_path / "o")])
+    assert grid_from_args(args).nproc == 3
+    with pytest.raises(PromptGSError, match="nproc 0"):
+        Grid(scenes=[_scene_again(tmp_path)], nproc=0).validate()
+
+
+def _scene_again(tmp_path: Path) -> SceneSpec:
+    return SceneSpec(name="s", path=tmp_path / "scene")
+
+
 def test_prompt_methods_without_prompts_are_not_applicable(tmp_path: Path):
     grid = Grid(scenes=[_scene(tmp_path)], methods=["promptgs-1", "promptgs-center", "promptgs-auto"], iterations=[10])
     fake = FakeTrainer()

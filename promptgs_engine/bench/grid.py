@@ -15,6 +15,11 @@ suggested prompts, a box per object group), ``promptgs-auto`` (prompts proposed 
 error field), ``promptgs-propose`` (no box drawn: prompts proposed where several views
 agree the render misses a small object, ``--propose-prompts``). A prompt method on a scene without those prompts is not applicable and is
 skipped with a note.
+
+Processes: with ``nproc`` N > 1 (``--nproc``, or the grid file's ``"nproc"``) every cell
+trains as N ranks on this machine (``promptgs train --nproc N``, one view per rank and
+step; docs/distributed.md); its cell ids end in ``/pN`` and one bench folder holds one
+process count.
 """
 
 from __future__ import annotations
@@ -65,6 +70,7 @@ class Grid:
     budgets: list[int | str | None] = field(default_factory=lambda: [None])
     iterations: list[int] = field(default_factory=lambda: [600])
     seeds: list[int] = field(default_factory=lambda: [0])
+    nproc: int = 1  # training processes per cell
 
     def validate(self) -> None:
         if not self.scenes:
@@ -81,6 +87,8 @@ class Grid:
         for b in self.budgets:
             if b not in (None, "auto") and not (isinstance(b, int) and b > 0):
                 raise PromptGSError(f"budget {b!r}: use a positive whole number, 'auto' or 'none'")
+        if isinstance(self.nproc, bool) or not isinstance(self.nproc, int) or self.nproc < 1:
+            raise PromptGSError(f"nproc {self.nproc!r}: use a positive whole number of processes")
 
     def cells(self) -> list["Cell"]:
         """Seed by seed, so a partly run grid holds whole comparisons, and slow periods of
@@ -91,13 +99,13 @@ class Grid:
                 for seed in self.seeds:
                     for method in self.methods:
                         for budget in self.budgets:
-                            out.append(Cell(scene, method, budget, iterations, seed))
+                            out.append(Cell(scene, method, budget, iterations, seed, self.nproc))
         return out
 
     @classmethod
     def from_json(cls, data: dict, base: Path = Path(".")) -> "Grid":
         """A grid file: ``{"scenes": [{"name", "path", "images", "iterations"}...],
-        "methods": [...], "budgets": [...], "iterations": [...], "seeds": [...]}``;
+        "methods": [...], "budgets": [...], "iterations": [...], "seeds": [...], "nproc": N}``;
         scene paths are relative to the grid file."""
         try:
             scenes = [
@@ -114,6 +122,8 @@ class Grid:
             for key in ("methods", "budgets", "iterations", "seeds"):
                 if key in data:
                     setattr(grid, key, list(data[key]))
+            if "nproc" in data:
+                grid.nproc = data["nproc"]
         except (KeyError, TypeError) as exc:
             raise PromptGSError(f"grid file: missing or malformed entry ({exc})") from exc
         return grid
@@ -126,11 +136,13 @@ class Cell:
     budget: int | str | None
     iterations: int
     seed: int
+    nproc: int = 1
 
     @property
     def id(self) -> str:
         budget = "none" if self.budget is None else str(self.budget)
-        return f"{self.scene.name}/{self.method}/{budget}/i{self.iterations}/s{self.seed}"
+        procs = f"/p{self.nproc}" if self.nproc != 1 else ""
+        return f"{self.scene.name}/{self.method}/{budget}/i{self.iterations}/s{self.seed}{procs}"
 
     @property
     def strategy(self) -> str:
@@ -198,6 +210,8 @@ def job_for(cell: Cell, out: Path) -> dict | None:
         "checkpoint_every": 0,
         "save_test_renders": True,
     }
+    if cell.nproc > 1:
+        job["nproc"] = cell.nproc
     if cell.prompt == "center":
         job["center_prompt"] = True
     elif cell.prompt == "auto":
@@ -281,6 +295,7 @@ def run_cell(cell: Cell, out: Path, run: RunFn = run_process) -> dict | None:
         "budget": cell.budget,
         "iterations": cell.iterations,
         "seed": cell.seed,
+        "nproc": cell.nproc,
         "run_dir": str(run_dir),
         "wall_seconds": wall,
         "peak_rss_mb": peak,
@@ -308,7 +323,13 @@ def run_grid(grid: Grid, out: Path, run: RunFn = run_process, quiet: bool = Fals
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     results = out / "results.jsonl"
-    done = {r["cell"] for r in read_results(results) if r.get("status") == "ok"}
+    earlier = read_results(results)
+    others = sorted({int(r.get("nproc", 1)) for r in earlier} - {grid.nproc})
+    if others:
+        raise PromptGSError(
+            f"{out}: holds cells trained with {others[0]} processes, this grid asks for {grid.nproc} (use another --out)"
+        )
+    done = {r["cell"] for r in earlier if r.get("status") == "ok"}
     cells = grid.cells()
     todo = [c for c in cells if c.id not in done]
     if not quiet:
@@ -361,6 +382,7 @@ def add_parser(sub) -> None:
     p.add_argument("--budgets", nargs="+", help="maximum Gaussians per cell: numbers, 'auto', 'none' (default none)")
     p.add_argument("--iterations", type=int, nargs="+", help="training steps per cell, for every scene (overrides the grid file)")
     p.add_argument("--seeds", type=int, nargs="+")
+    p.add_argument("--nproc", type=int, help="train every cell with N processes on this machine (default 1)")
     p.add_argument("--out", type=Path, required=True, help="bench folder: results.jsonl and runs/")
     p.add_argument("--report", action="store_true", help="write the report (charts, table, crop sheet) into OUT/report when done")
     p.set_defaults(func=cmd_bench)
@@ -385,6 +407,8 @@ def grid_from_args(args) -> Grid:
         grid.scenes = [dataclasses.replace(s, iterations=None) for s in grid.scenes]
     if args.seeds:
         grid.seeds = list(args.seeds)
+    if args.nproc is not None:
+        grid.nproc = args.nproc
     return grid
 
 

@@ -18,6 +18,8 @@ from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import duplicate, reset_opa, split
 
 STRATEGY_NAMES = ("3dgs", "absgs", "promptgs")
+# Flag in the info of a batched step whose statistics are in the state already (batch.py).
+STATISTICS_MERGED = "statistics_merged"
 
 # Step counts of the 3DGS paper's schedule for a 30k-step run.
 _REFERENCE_ITERATIONS = 30_000
@@ -86,6 +88,11 @@ class ResettingDefaultStrategy(DefaultStrategy):
             if self.auto_budget:
                 self._judge_reset_cycle(params, state, step)
             reset_opa(params=params, optimizers=optimizers, state=state, value=self.prune_opa * 2.0)
+
+    def _update_state(self, params, state, info, packed: bool = False) -> None:
+        if info.get(STATISTICS_MERGED):  # a batched step added its views' statistics (batch.py)
+            return
+        super()._update_state(params, state, info, packed=packed)
 
     # -- growth -----------------------------------------------------------------------
 

@@ -52,7 +52,7 @@ from gsplat.strategy.ops import _update_param_with_optimizer, remove
 
 from ..gaussians import rgb_to_sh
 from ..prompts import PromptBox, boxes_contain
-from .default import ResettingDefaultStrategy
+from .default import STATISTICS_MERGED, ResettingDefaultStrategy
 
 # Above this fraction of the Gaussians inside the prompts, growth there uses the normal
 # 3DGS threshold (see growth_candidates).
@@ -107,6 +107,8 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             state["born"] = torch.zeros(n, device=device)
 
     def _update_state(self, params, state, info, packed: bool = False) -> None:
+        if info.get(STATISTICS_MERGED):  # a batched step added its views' statistics (batch.py)
+            return
         # A crop step renders the region around a prompt at full resolution, over and
         # over: its view-space gradients must not drive growth of what lies outside the
         # prompts (the terrain behind a drone group would be densified far beyond what
