@@ -167,14 +167,19 @@ class TrainingProposer:
         draw = params_renderer(t.params, t.backend, t.screen_filter, t.cfg.rasterize_mode, t.active_sh_degree(step))
         result = propose_views(draw, self.cameras)
         result.info.update({"step": step, "dataset": str(t.cfg.dataset), "resolution": [self.cameras[0].width, self.cameras[0].height]})
-        result.save(Path(t.out) / PROPOSALS_FILE)
+        # Every rank of a distributed run proposes from the same parameters and gets the same
+        # boxes; rank 0 alone writes the file.
+        writer = t.dist.is_writer
+        if writer:
+            result.save(Path(t.out) / PROPOSALS_FILE)
         self.result = result
         boxes = visible_boxes(result.boxes(TRAIN_MIN_CONFIDENCE), self.cameras)
         if boxes:
             edge = float(np.median([max(b.size) for b in boxes]))
             boxes, members = group_boxes(boxes, GROUP_LINK_EDGES * edge)
             result.info["trained_as"] = [{**b.to_dict(), "members": m} for b, m in zip(boxes, members)]
-            result.save(Path(t.out) / PROPOSALS_FILE)
+            if writer:
+                result.save(Path(t.out) / PROPOSALS_FILE)
         if existing:
             from .prompts import contains_any
 
