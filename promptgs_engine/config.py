@@ -59,6 +59,7 @@ class TrainConfig:
     progressive: bool | None = None  # None: on for promptgs, off for the baselines
     screen_filter: float | None = None  # px² at full size; None: PROMPTGS_SCREEN_FILTER for promptgs, else BASELINE_SCREEN_FILTER
     antialiased: bool = False  # opacity compensation of the screen filter (--antialiased), any strategy
+    compact: bool = False  # remove the least contributing Gaussians when growth ends (compaction.py)
     sky: bool = True  # start a far shell of Gaussians where the cameras see background (see sky.py)
     extra: dict = field(default_factory=dict)
 
@@ -106,6 +107,8 @@ class TrainConfig:
             raise PromptGSError(f"--screen-filter must be a variance in pixels² between 0 and 100 (3DGS: 0.3), got {self.screen_filter!r}")
         if not isinstance(self.antialiased, bool):
             raise PromptGSError(f"antialiased must be true or false, got {self.antialiased!r}")
+        if not isinstance(self.compact, bool):
+            raise PromptGSError(f"compact must be true or false, got {self.compact!r}")
         self.downscale  # validates resolution_scale
 
     def to_json(self) -> dict:

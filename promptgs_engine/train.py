@@ -141,7 +141,7 @@ class Trainer:
         if cfg.strategy == "promptgs":
             from .focus import PromptFocus, load_prompt_setting
 
-            self.focus = PromptFocus(self, load_prompt_setting(cfg))
+            self.focus = PromptFocus(self, load_prompt_setting(cfg, self.scene))
             self.strategy.attention_fn = lambda pts: self.focus.field.attention(pts.cpu(), self.focus.prompts)
 
     # -- set-up -----------------------------------------------------------------------
@@ -273,6 +273,10 @@ class Trainer:
         self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, step, info, packed=False)
         if self.focus is not None:
             self.focus.after_step(step)
+        if self.cfg.compact and step == self.schedule.refine_stop_iter:
+            from .compaction import compact_trainer
+
+            compact_trainer(self)
         self.check_finite()
         with torch.no_grad():
             mse = float(((img.detach() - gt) ** 2).mean())
@@ -411,6 +415,8 @@ class Trainer:
             "budget": self.cfg.budget,
             "auto_budget": self.strategy_state.get("auto_budget"),
             "sky_points": self.n_sky_points,
+            "growth": self.strategy_state.get("ledger"),
+            "compaction": self.strategy_state.get("compaction"),
         }
 
 

@@ -54,8 +54,12 @@ def test_progressive_resolution_levels(toy, tmp_path):
         maps = torch.zeros(n, h, w)
         focus.observe(step, views, torch.zeros(n, h, w, 3), maps, maps, None, maps, info)
         assert info["downscale"] == expected and views[0].camera.width == 128 / expected, step
-        # Below full size the steps keep 3DGS's screen filter; full-size ones use the run's.
-        assert views[0].screen_filter == (0.3 if expected > 1 else None), step
+        # Below full size the steps keep 3DGS's screen filter, and so do the statistics
+        # steps (the only ones that vote for growth outside the prompts); other full-size
+        # steps use the run's.
+        statistics = step < sched.refine_stop_iter and kind == "single" and step % 2 == 0
+        assert views[0].statistics == statistics and info["votes_outside"] == statistics, step
+        assert views[0].screen_filter == (0.3 if expected > 1 or statistics else None), step
     args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "b"), "--strategy", "promptgs", "--no-progressive"])
     cfg = train_config_from_args(args)
     assert cfg.progressive is False
@@ -83,8 +87,9 @@ def test_a_prompt_no_camera_sees_is_a_clear_error(toy, tmp_path, capsys):
 
 
 def test_screen_filter_per_step_and_in_evaluation(toy, tmp_path, monkeypatch):
-    """PromptGS renders full-size steps with its 0.1 px² filter and low-resolution steps
-    with 3DGS's 0.3; the run folder records the filter, and evaluation renders with it."""
+    """PromptGS renders full-size steps with its 0.1 px² filter, and low-resolution and
+    statistics steps with 3DGS's 0.3; the run folder records the filter, and evaluation
+    renders with it."""
     import promptgs_engine.evaluation as evaluation
     import promptgs_engine.train as train
     from promptgs_engine.train import run_training
@@ -105,9 +110,12 @@ def test_screen_filter_per_step_and_in_evaluation(toy, tmp_path, monkeypatch):
     cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=20, strategy="promptgs",
                       prompts=str(toy / "prompts_1.json"), checkpoint_every=0)
     run_training(cfg, quiet=True)
+    n_train = len(used)
     assert json.loads((tmp_path / "run" / "cfg.json").read_text())["screen_filter"] == 0.1
     assert {f for w, f in used if w == 64} == {0.3}  # 2x below the toy's 128 px
-    assert {f for w, f in used if w == 128} == {0.1}  # full size, in training and evaluation
+    assert {f for w, f in used if w == 128} == {0.1, 0.3}  # full size: the run's, and 3DGS's on statistics steps
+    evaluation.evaluate_run(tmp_path / "run", quiet=True)
+    assert {f for _, f in used[n_train:]} == {0.1}  # evaluation: the run's
     n_train = len(used)
     # An old run folder (no screen_filter in cfg.json) was trained with 3DGS's filter.
     saved = json.loads((tmp_path / "run" / "cfg.json").read_text())

@@ -1,0 +1,156 @@
+"""Compaction (``--compact``): once growth has ended, remove the Gaussians that contribute
+least to the training views, and let the rest of the run fine-tune what is left.
+
+What a Gaussian contributes is its blending weight summed over every pixel of every
+training view, ``I_g = Σ_views Σ_pixels α_g(p) · T_g(p)`` (``T`` the transmittance in
+front of it): Mini-Splatting's importance score (Fang and Wang, ECCV 2024), and
+LightGaussian's global significance (Fan et al., NeurIPS 2024) without its volume
+factor. It is measured exactly, not estimated: every Gaussian gets a one-channel colour of
+1, and the gradient of the rendered channel's sum with respect to that colour is
+``Σ_pixels α·T`` (one forward and backward pass per training view at the training
+resolution).
+
+The threshold is a share of the total: the least important Gaussians are removed as long
+as together they carry at most ``removed_weight`` (default 1%) of the summed blending
+weight of all views. The cut adapts to each model: a model whose growth left many
+Gaussians nearly invisible loses many, and a lean one few.
+
+A prompted object can carry little weight in total (a drone covers one pixel in a few
+views) and would fall under any global cut. So with prompts (PromptGS), a Gaussian inside
+a prompt box is kept whenever it carries at least ``protect_pixels`` (a quarter of a
+pixel) of blending weight in some training view: it draws part of a pixel of what the
+prompt marks.
+
+The trainer compacts once, at the step where densification stops (``refine_stop_iter``,
+half of the run): the second half of the run, in which 3DGS only fine-tunes, fine-tunes
+the compacted model (LightGaussian prunes and then fine-tunes the same way).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import torch
+from gsplat.strategy.ops import remove
+
+from .prompts import PromptBox, contains_any
+
+log = logging.getLogger("promptgs.compaction")
+
+REMOVED_WEIGHT = 0.01  # the share of all blending weight the removed Gaussians may carry
+PROTECT_PIXELS = 0.25  # inside prompts: blending weight in one view that keeps a Gaussian
+
+
+@dataclass
+class Importance:
+    """Per Gaussian: blending weight summed over all views, and its largest in one view."""
+
+    total: torch.Tensor  # [N]
+    peak_view: torch.Tensor  # [N]
+
+
+def blending_weights(
+    render_fn: Callable[..., Any], params: torch.nn.ParameterDict, cameras: Sequence[Any], chunk: int = 1
+) -> Importance:
+    """``Σ_pixels α·T`` of every Gaussian in each of ``cameras``, summed and maximised over
+    the cameras. ``render_fn(cameras, colors=..., sh_degree=None)`` renders feature
+    colours [N, 1] (the trainer's `render_cameras` with the run's filter)."""
+    n = params["means"].shape[0]
+    device = params["means"].device
+    total = torch.zeros(n, device=device)
+    peak = torch.zeros(n, device=device)
+    for start in range(0, len(cameras), chunk):
+        ones = torch.ones(n, 1, device=device, requires_grad=True)
+        out, _, _ = render_fn(list(cameras[start : start + chunk]), colors=ones)
+        out[..., 0].sum().backward()
+        weight = ones.grad[:, 0].detach()
+        total += weight
+        peak = torch.maximum(peak, weight)
+    return Importance(total=total, peak_view=peak)
+
+
+def removal_mask(
+    importance: Importance,
+    protected: torch.Tensor | None = None,
+    removed_weight: float = REMOVED_WEIGHT,
+) -> torch.Tensor:
+    """bool [N]: the least important Gaussians whose summed weight is at most
+    ``removed_weight`` of the total, never one in ``protected``."""
+    total = importance.total
+    order = torch.argsort(total)  # least important first
+    budget = removed_weight * float(total.sum())
+    cumulative = torch.cumsum(total[order].double(), dim=0)
+    remove_sorted = cumulative <= budget
+    mask = torch.zeros_like(total, dtype=torch.bool)
+    mask[order[remove_sorted]] = True
+    if protected is not None:
+        mask &= ~protected
+    return mask
+
+
+def prompt_protection(means: torch.Tensor, importance: Importance, prompts: Sequence[PromptBox], protect_pixels: float = PROTECT_PIXELS) -> torch.Tensor:
+    """bool [N]: inside a prompt box and carrying at least ``protect_pixels`` of blending
+    weight in some view (it draws part of what the prompt marks)."""
+    if not prompts:
+        return torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+    inside = contains_any(list(prompts), means.detach().cpu()).to(means.device)
+    return inside & (importance.peak_view >= protect_pixels)
+
+
+@torch.no_grad()
+def compact(
+    params: torch.nn.ParameterDict,
+    optimizers: dict[str, torch.optim.Optimizer],
+    state: dict[str, Any],
+    importance: Importance,
+    prompts: Sequence[PromptBox] = (),
+    removed_weight: float = REMOVED_WEIGHT,
+    protect_pixels: float = PROTECT_PIXELS,
+) -> dict[str, Any]:
+    """Remove the Gaussians `removal_mask` picks (with optimizer and strategy state), never
+    a prompt-protected one. Returns what was done, for ``train.json``."""
+    n = params["means"].shape[0]
+    protected = prompt_protection(params["means"], importance, prompts, protect_pixels)
+    mask = removal_mask(importance, protected, removed_weight)
+    n_removed = int(mask.sum())
+    if n_removed:
+        remove(params=params, optimizers=optimizers, state=state, mask=mask)
+    summary = {
+        "before": n,
+        "removed": n_removed,
+        "after": n - n_removed,
+        "protected": int(protected.sum()),
+        "removed_weight": float(importance.total[mask].sum() / importance.total.sum().clamp_min(1e-12)),
+    }
+    log.info("compaction: %d of %d Gaussians removed (%.2f%% of the blending weight), %d protected in prompts",
+             n_removed, n, 100 * summary["removed_weight"], summary["protected"])
+    return summary
+
+
+def compact_trainer(trainer) -> dict[str, Any]:
+    """Compact a `train.Trainer`'s Gaussians now: importance over its training views at
+    the training resolution, rendered as the run renders (filter, mode, backend); the
+    prompts of a PromptGS run protect their objects. The summary is also kept in the
+    strategy state (and so in checkpoints and ``train.json``)."""
+    cfg, params = trainer.cfg, trainer.params
+    cameras = [c.downscaled(cfg.downscale) for c in trainer.scene.train_cameras]
+    prompts = list(trainer.focus.prompts) if trainer.focus is not None else []
+
+    def render_fn(cams, colors):
+        from .render import render
+
+        return render(
+            params["means"].detach(), params["quats"].detach(), torch.exp(params["scales"].detach()),
+            torch.sigmoid(params["opacities"].detach()), colors,
+            torch.stack([c.world_to_camera for c in cams]).to(colors.device), torch.stack([c.K for c in cams]).to(colors.device),
+            cams[0].width, cams[0].height, sh_degree=None, backend=trainer.backend,
+            eps2d=trainer.screen_filter, rasterize_mode=cfg.rasterize_mode,
+        )
+
+    importance = blending_weights(render_fn, params, cameras)
+    summary = compact(params, trainer.optimizers, trainer.strategy_state, importance, prompts)
+    summary["step"] = trainer.step
+    trainer.strategy_state["compaction"] = summary
+    return summary
