@@ -10,10 +10,12 @@ factor. It is measured exactly, not estimated: every Gaussian gets a one-channel
 ``Σ_pixels α·T`` (one forward and backward pass per training view at the training
 resolution).
 
-The threshold is a share of the total: the least important Gaussians are removed as long
-as together they carry at most ``removed_weight`` (default 1%) of the summed blending
-weight of all views. The cut adapts to each model: a model whose growth left many
-Gaussians nearly invisible loses many, and a lean one few.
+The threshold is a percentile, as LightGaussian prunes by a ratio of its ranking: the 40%
+least important Gaussians go (``fraction``), so a compacted model holds 0.6× the
+Gaussians it grew, unless those 40% carry more than 5% of all the blending weight
+(``max_weight``): then only as many go as carry 5%, and a lean model keeps more. On
+tumbler (3DGS, seed 0, 1500 steps) the 40% least important carried under 1% of the
+weight; on fern, about 3%.
 
 A prompted object can carry little weight in total (a drone covers one pixel in a few
 views) and would fall under any global cut. So with prompts (PromptGS), a Gaussian inside
@@ -21,9 +23,12 @@ a prompt box is kept whenever it carries at least ``protect_pixels`` (a quarter 
 pixel) of blending weight in some training view: it draws part of a pixel of what the
 prompt marks.
 
-The trainer compacts once, at the step where densification stops (``refine_stop_iter``,
-half of the run): the second half of the run, in which 3DGS only fine-tunes, fine-tunes
-the compacted model (LightGaussian prunes and then fine-tunes the same way).
+The trainer compacts once, at 60% of the run (`compaction_step`): a tenth of the run after
+densification stops, so that the Gaussians of the last refinement and the opacities
+clamped by the last reset have settled, and the remaining 40%, in which 3DGS only
+fine-tunes, fine-tune the compacted model (LightGaussian prunes and then fine-tunes the
+same way). On tumbler, removing 1% of the weight right where densification stops cost
+0.18 dB; a tenth of the run later, 0.07 dB.
 """
 
 from __future__ import annotations
@@ -39,8 +44,10 @@ from .prompts import PromptBox, contains_any
 
 log = logging.getLogger("promptgs.compaction")
 
-REMOVED_WEIGHT = 0.01  # the share of all blending weight the removed Gaussians may carry
+REMOVED_FRACTION = 0.4  # of the Gaussians, the least important
+MAX_REMOVED_WEIGHT = 0.05  # the share of all blending weight the removed ones may carry at most
 PROTECT_PIXELS = 0.25  # inside prompts: blending weight in one view that keeps a Gaussian
+COMPACT_AT = 0.6  # of the run (never before densification stops)
 
 
 @dataclass
@@ -74,19 +81,23 @@ def blending_weights(
 def removal_mask(
     importance: Importance,
     protected: torch.Tensor | None = None,
-    removed_weight: float = REMOVED_WEIGHT,
+    fraction: float = REMOVED_FRACTION,
+    max_weight: float = MAX_REMOVED_WEIGHT,
 ) -> torch.Tensor:
-    """bool [N]: the least important Gaussians whose summed weight is at most
-    ``removed_weight`` of the total, never one in ``protected``."""
+    """bool [N]: the ``fraction`` least important of the Gaussians (counted over all of
+    them, taken among the unprotected), fewer if they would carry more than
+    ``max_weight`` of the total blending weight; never one in ``protected``."""
     total = importance.total
-    order = torch.argsort(total)  # least important first
-    budget = removed_weight * float(total.sum())
-    cumulative = torch.cumsum(total[order].double(), dim=0)
-    remove_sorted = cumulative <= budget
-    mask = torch.zeros_like(total, dtype=torch.bool)
-    mask[order[remove_sorted]] = True
+    n = total.shape[0]
+    candidates = torch.arange(n, device=total.device)
     if protected is not None:
-        mask &= ~protected
+        candidates = candidates[~protected]
+    order = candidates[torch.argsort(total[candidates])]  # least important first
+    order = order[: int(round(fraction * n))]
+    cumulative = torch.cumsum(total[order].double(), dim=0)
+    order = order[cumulative <= max_weight * float(total.sum())]
+    mask = torch.zeros(n, dtype=torch.bool, device=total.device)
+    mask[order] = True
     return mask
 
 
@@ -106,14 +117,15 @@ def compact(
     state: dict[str, Any],
     importance: Importance,
     prompts: Sequence[PromptBox] = (),
-    removed_weight: float = REMOVED_WEIGHT,
+    fraction: float = REMOVED_FRACTION,
+    max_weight: float = MAX_REMOVED_WEIGHT,
     protect_pixels: float = PROTECT_PIXELS,
 ) -> dict[str, Any]:
     """Remove the Gaussians `removal_mask` picks (with optimizer and strategy state), never
     a prompt-protected one. Returns what was done, for ``train.json``."""
     n = params["means"].shape[0]
     protected = prompt_protection(params["means"], importance, prompts, protect_pixels)
-    mask = removal_mask(importance, protected, removed_weight)
+    mask = removal_mask(importance, protected, fraction, max_weight)
     n_removed = int(mask.sum())
     if n_removed:
         remove(params=params, optimizers=optimizers, state=state, mask=mask)
@@ -129,12 +141,29 @@ def compact(
     return summary
 
 
+def compaction_step(trainer) -> int:
+    """The step at which a run compacts: ``COMPACT_AT`` of the run (or
+    ``extra["compaction"]["at"]``, for experiments), never before densification stops."""
+    at = float(trainer.cfg.extra.get("compaction", {}).get("at", COMPACT_AT))
+    return max(trainer.schedule.refine_stop_iter, min(int(at * trainer.cfg.iterations), trainer.cfg.iterations - 1))
+
+
+def maybe_compact(trainer, step: int) -> dict[str, Any] | None:
+    """Called by the trainer after every step of a ``--compact`` run: compacts once, at
+    `compaction_step`."""
+    if step != compaction_step(trainer) or trainer.strategy_state.get("compaction") is not None:
+        return None
+    return compact_trainer(trainer)
+
+
 def compact_trainer(trainer) -> dict[str, Any]:
     """Compact a `train.Trainer`'s Gaussians now: importance over its training views at
     the training resolution, rendered as the run renders (filter, mode, backend); the
     prompts of a PromptGS run protect their objects. The summary is also kept in the
-    strategy state (and so in checkpoints and ``train.json``)."""
+    strategy state (and so in checkpoints and ``train.json``). ``extra["compaction"]``
+    may set ``fraction``, ``max_weight`` and ``protect_pixels`` (for experiments)."""
     cfg, params = trainer.cfg, trainer.params
+    options = cfg.extra.get("compaction", {})
     cameras = [c.downscaled(cfg.downscale) for c in trainer.scene.train_cameras]
     prompts = list(trainer.focus.prompts) if trainer.focus is not None else []
 
@@ -150,7 +179,12 @@ def compact_trainer(trainer) -> dict[str, Any]:
         )
 
     importance = blending_weights(render_fn, params, cameras)
-    summary = compact(params, trainer.optimizers, trainer.strategy_state, importance, prompts)
+    summary = compact(
+        params, trainer.optimizers, trainer.strategy_state, importance, prompts,
+        fraction=float(options.get("fraction", REMOVED_FRACTION)),
+        max_weight=float(options.get("max_weight", MAX_REMOVED_WEIGHT)),
+        protect_pixels=float(options.get("protect_pixels", PROTECT_PIXELS)),
+    )
     summary["step"] = trainer.step
     trainer.strategy_state["compaction"] = summary
     return summary

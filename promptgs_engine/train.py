@@ -273,10 +273,10 @@ class Trainer:
         self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, step, info, packed=False)
         if self.focus is not None:
             self.focus.after_step(step)
-        if self.cfg.compact and step == self.schedule.refine_stop_iter:
-            from .compaction import compact_trainer
+        if self.cfg.compact:
+            from .compaction import maybe_compact
 
-            compact_trainer(self)
+            maybe_compact(self, step)
         self.check_finite()
         with torch.no_grad():
             mse = float(((img.detach() - gt) ** 2).mean())

@@ -34,11 +34,15 @@ def test_promptgs_resamples_into_the_prompt_and_snapshots_the_field(toy, tmp_pat
     assert snap["score"].shape[0] == snap["means"].shape[0] and snap["score"].max() > 0
 
 
-def test_progressive_resolution_levels(toy, tmp_path):
+def test_progressive_resolution_levels(toy, tmp_path, monkeypatch):
+    import promptgs_engine.focus as focus_module
+
     cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=300, strategy="promptgs", center_prompt=False)
     focus = Trainer(cfg, quiet=True).focus
-    # 128 px wide: 8x and 4x would leave under 64 px, so 2x (64 px) takes their place
-    # and full size comes at 70% of the run, as in the paper.
+    assert [focus.downscale_at(s) for s in (0, 100, 299)] == [1, 1, 1]  # 128 px: 64 px would be under the floor of 100
+    monkeypatch.setattr(focus_module, "MIN_PROGRESSIVE_WIDTH", 64)
+    # With a floor of 64: 8x and 4x would leave under 64 px, so 2x (64 px) takes their
+    # place and full size comes at 70% of the run, as in the paper.
     levels = [focus.downscale_at(s) for s in (0, 69, 70, 139, 140, 209, 210, 299)]
     assert levels == [2, 2, 2, 2, 2, 2, 1, 1]
     # While densification runs (to step 150), every second single-view step is at full
@@ -105,6 +109,9 @@ def test_screen_filter_per_step_and_in_evaluation(toy, tmp_path, monkeypatch):
 
         monkeypatch.setattr(module, "render", render)
 
+    import promptgs_engine.focus as focus_module
+
+    monkeypatch.setattr(focus_module, "MIN_PROGRESSIVE_WIDTH", 64)  # the toy's 128 px then train at 2x below
     recording(train)
     recording(evaluation)
     cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=20, strategy="promptgs",

@@ -4,36 +4,49 @@ protection of young Gaussians in prompts, and attention-guided resampling.
 Outside the prompt boxes it behaves as the 3DGS strategy (gsplat's DefaultStrategy, with
 the opacity reset applied). Inside them:
 
-* **Score.** Each Gaussian accumulates, over the views that see it,
-  ``S_g = Σ_i P^i · F(∇_g + d_g^i + o_g + s_g + r_g)`` (paper Eq. 2), where
+* **Score.** Each Gaussian accumulates, over the views that see it since the last
+  refinement, ``S_g = Σ_i P^i · F(∇_g + d_g^i + o_g + s_g + r_g)`` (paper Eq. 2), where
   ``P^i = λ1·L1 + λ2·D-SSIM + λ3·L_edge`` is view i's loss (Eq. 3) and the terms are
   normalised so that 1 means "at the densification threshold":
   ``∇_g`` = view-space gradient / grow_grad2d, ``d_g^i`` = 1 / (1 + depth / scene_scale)
   (near Gaussians count more), ``o_g`` = opacity, ``s_g`` = largest scale /
   (grow_scale3d · scene_scale), ``r_g`` = screen radius / (grow_scale2d · image size);
   each term is clamped to [0, 4] and ``F(x) = log(1 + x)`` keeps one huge term from
-  dominating.
-* **Prioritised growth.** Inside prompts the gradient threshold is lowered to
-  ``prompt_grad_scale · grow_grad2d``; candidates are ranked by mean score per view
-  times ``1 + attention`` (the error field fused with the prompt weight), and the
-  highest grow first. Outside the prompts, growth is 3DGS's less what the prompts add:
-  the outside candidates (3DGS's threshold) grow by largest view-space gradient, fewer
-  by the number of Gaussians the prompts added beyond 3DGS's rule since the last
-  refinement (inside candidates below 3DGS's threshold, and resampled points), so the
-  prompts move Gaussians to where they point rather than add them. Crop steps (related views
-  rendered around a prompt) do not count towards growth outside the prompts: they show
-  the same background again and again at full resolution. A ``budget`` caps the
-  total, prompt candidates first.
-* **Growth statistics at full resolution.** Under progressive resolution, a whole-view
-  step below full size (``info["downscale"] > 1``) trains but adds nothing to the
-  growth statistics (view-space gradients, score): the trainer renders some steps at
-  full size while densification runs (`focus.PromptFocus.is_statistics_step`), and
-  growth follows their gradients, as 3DGS's does. Low-resolution gradients grew about
-  twice the 3DGS count on the mountain dataset; a fixed 1/√f weight fitted it but
-  starved the real scenes (measurements in docs/promptgs.md).
-* **Protection.** Gaussians born inside a prompt (by growth or resampling) are not
+  dominating (`score_terms`). Growth ranks by the mean per view.
+* **Prioritised growth inside the prompts** (`prompt_growth`). At each refinement a quota
+  of the prompts' Gaussians grows, and the score distribution sets it: the number whose
+  score lies above Tukey's upper fence ``Q3 + 1.5 · IQR`` of the prompts' scores
+  (`prompt_quota`), the long tail of "abnormally high" scores that the paper's Fig. 2
+  shows densification bringing down. The quota goes to the highest priority, score ×
+  ``(1 + attention)`` (the error field fused with the prompt weight), among those whose
+  priority clears the same fence: the attention field decides where the quota goes. No
+  gradient threshold selects anything inside the prompts.
+* **Outside the prompts**, growth is 3DGS's rule (mean view-space gradient over 3DGS's
+  threshold), less what the prompts add beyond that rule: the prompts' growth over what
+  the rule would have grown inside them, and the Gaussians resampled since the last
+  refinement. The outside candidates with the smallest gradients give way, and what they
+  cannot offset is carried to the next refinement (``state["debt"]``): the prompts move
+  Gaussians to where they point rather than add them. A ``budget`` caps the total,
+  prompt Gaussians first.
+* **Growth statistics as 3DGS measures them.** A whole-view step below full size
+  (``info["downscale"] > 1``) trains but adds nothing to the statistics. Outside the
+  prompts only the trainer's statistics steps vote (``info["votes_outside"]``: whole
+  views at full size with 3DGS's 0.3 px² screen filter,
+  `focus.PromptFocus.is_statistics_step`): crops would densify the background of a
+  prompt over and over, and under PromptGS's narrow filter a flat surface drawn by
+  Gaussians smaller than a pixel shows gaps whose gradients grow it (a 64 px toy scene
+  grew 82k Gaussians against 3DGS's 65k that way). Low-resolution gradients grew about
+  twice the 3DGS count on the mountain (docs/promptgs.md).
+* **Resampled Gaussians earn their keep** (`idle_resampled`): one that is still under
+  ``carve_keep_opacity`` (0.05) a refinement interval after it came, and after the last
+  opacity reset, is removed at the next refinement, and its cost is paid back to the
+  debt. Carving adds up to a thousand points a round where the render is wrong; most land
+  on surfaces that the rest of the model fits soon after.
+* **Protection.** Other Gaussians born inside a prompt (by growth or resampling) are not
   pruned for ``protect_steps`` steps, so the first opacity prune does not remove an
   object before it has been seen from enough views.
+* **Ledger.** ``state["ledger"]`` (``train.json`` "growth") counts what grew inside and
+  outside, what resampling added and what was removed, per refinement.
 * **Resampling** (`carve_prompt`): inside a prompt box, candidate points on a voxel grid
   are projected into the box's most relevant views; a point is kept where the current
   render is wrong (high error at its pixel) in most of the views that see it — a
