@@ -10,15 +10,17 @@ from promptgs_engine.train import Trainer
 def smooth_toy(tmp_path_factory):
     """A 64×48 toy scene without texture noise, its SfM points dense on the ground: the
     start already draws most of it, so what PromptGS adds (resampling, growth in the box,
-    growth the narrow screen filter provokes) is not lost in 3DGS's own growth."""
+    growth the narrow screen filter provokes) is not lost in 3DGS's own growth. (When
+    every PromptGS step voted for growth outside the prompts, with the 0.1 px² filter,
+    PromptGS ended with 24.1k Gaussians here against 3DGS's 22.9k, and this test failed.)"""
     from promptgs_engine.bench.toy_scene import ToySceneConfig, make_toy_scene
 
-    cfg = ToySceneConfig(width=64, height=48, focal=55.0, n_views=12, ground_grid=30, texture_noise=0.0, n_sfm_points=8000)
+    cfg = ToySceneConfig(width=64, height=48, focal=55.0, n_views=12, ground_grid=30, texture_noise=0.0, n_sfm_points=3000)
     return make_toy_scene(tmp_path_factory.mktemp("smooth") / "scene", cfg)
 
 
 def _train(dataset, out, **kw) -> Trainer:
-    cfg = TrainConfig(dataset=str(dataset), out=str(out), iterations=150, checkpoint_every=0, sky=False, **kw)
+    cfg = TrainConfig(dataset=str(dataset), out=str(out), iterations=100, checkpoint_every=0, sky=False, **kw)
     trainer = Trainer(cfg, quiet=True)
     trainer.out.mkdir(parents=True)
     trainer.train()

@@ -97,6 +97,28 @@ def test_prompt_growth_is_the_score_tail_placed_by_attention():
     assert ledger["grown_inside"] == 2 and ledger["rule_inside"] == 0 and ledger["grown_outside"] == 0
 
 
+def test_inside_the_prompts_the_score_decides_growth_not_a_gradient_threshold():
+    # Twenty Gaussians in the box. Five have three times 3DGS's gradient threshold but an
+    # ordinary score; two are the score's tail with a gradient under even a quarter of
+    # the threshold (the lowered threshold prompts used to have). Only the tail grows:
+    # neither 3DGS's rule nor a lowered threshold selects anything inside the prompts.
+    pts = _box_and_outside(20)
+    params, _ = _params(pts)
+    s, state = _strategy([UNIT_BOX])
+    n = 21 + FILLER
+    score = torch.cat([1.0 + 0.01 * torch.arange(20.0), torch.ones(1 + FILLER)])
+    score[[10, 11]] = torch.tensor([3.0, 2.9])
+    grads = torch.cat([torch.full((5,), 3.0), torch.full((15,), 0.2), torch.zeros(1 + FILLER)])
+    _set_stats(s, state, params, score, grads)
+    grow = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=100)
+    assert grow.nonzero().flatten().tolist() == [10, 11]
+    entry = state["ledger"]["refinements"][-1]
+    assert entry["rule_inside"] == 5 and entry["grown_inside"] == 2
+    # The quota follows the score distribution: a flat one has no tail, and nothing grows.
+    _set_stats(s, state, params, torch.ones(n), grads)
+    assert int(s.growth_candidates(params, state, state["grad2d"] / state["count"], step=200).sum()) == 0
+
+
 def test_a_prompt_holding_most_of_the_scene_does_not_lower_the_threshold():
     # Three of four Gaussians inside the box: it focuses nothing, so the 3DGS threshold
     # holds everywhere and gradients at half of it grow nothing.
