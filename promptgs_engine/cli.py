@@ -57,8 +57,8 @@ def _add_train(sub) -> None:
     )
     p.add_argument(
         "--compact", action=argparse.BooleanOptionalAction, default=None,
-        help="when growth ends (half the run), remove the Gaussians that carry the least blending weight "
-        "in the training views (1%% of it in all), and fine-tune the rest; prompted objects are kept",
+        help="at 60%% of the run (after growth ends), remove the 40%% of the Gaussians that carry the least "
+        "blending weight in the training views (at most 5%% of it), and fine-tune the rest; prompted objects are kept",
     )
     p.add_argument("--snapshot-every", type=int, help="write a snapshot for the Blender add-on every N steps")
     p.add_argument("--checkpoint-every", type=int)
