@@ -60,6 +60,11 @@ def _add_train(sub) -> None:
         "objects smaller than a pixel stay consistent across distances and resolutions "
         "(default off: 3DGS's classic filter)",
     )
+    p.add_argument(
+        "--compact", action=argparse.BooleanOptionalAction, default=None,
+        help="at 60%% of the run (after growth ends), remove the 40%% of the Gaussians that carry the least "
+        "blending weight in the training views (at most 5%% of it), and fine-tune the rest; prompted objects are kept",
+    )
     p.add_argument("--snapshot-every", type=int, help="write a snapshot for the Blender add-on every N steps")
     p.add_argument("--checkpoint-every", type=int)
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
@@ -86,7 +91,7 @@ def _add_train(sub) -> None:
 
 _TRAIN_KEYS = (
     "dataset", "out", "images", "iterations", "backend", "strategy", "seed", "resolution_scale",
-    "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "propose_prompts", "sky", "progressive", "screen_filter", "antialiased", "snapshot_every", "checkpoint_every",
+    "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "propose_prompts", "sky", "progressive", "screen_filter", "antialiased", "compact", "snapshot_every", "checkpoint_every",
     "batch_size",
 )
 # Job-file keys that say how to run, not what to train (not TrainConfig fields).

@@ -60,6 +60,7 @@ class TrainConfig:
     progressive: bool | None = None  # None: on for promptgs, off for the baselines
     screen_filter: float | None = None  # px² at full size; None: PROMPTGS_SCREEN_FILTER for promptgs, else BASELINE_SCREEN_FILTER
     antialiased: bool = False  # opacity compensation of the screen filter (--antialiased), any strategy
+    compact: bool = False  # remove the least contributing Gaussians when growth ends (compaction.py)
     sky: bool = True  # start a far shell of Gaussians where the cameras see background (see sky.py)
     # Views per optimisation step, over all ranks; None: one per rank. The learning rates,
     # Adam and the schedule follow batch.py's rules; `iterations` counts views.
@@ -119,6 +120,8 @@ class TrainConfig:
             raise PromptGSError(f"--batch-size must be a positive whole number of views, got {self.batch_size!r}")
         if not isinstance(self.antialiased, bool):
             raise PromptGSError(f"antialiased must be true or false, got {self.antialiased!r}")
+        if not isinstance(self.compact, bool):
+            raise PromptGSError(f"compact must be true or false, got {self.compact!r}")
         self.downscale  # validates resolution_scale
 
     def to_json(self) -> dict:

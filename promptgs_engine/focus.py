@@ -5,7 +5,8 @@ and the prompt-side bookkeeping around the PromptGS strategy.
 
 * **Views.** `views.ViewSchedule` gives the paper's 2:3:2:3 cycle of random multiview,
   single, related multiview and single steps. Related steps train on the prompt's most
-  relevant views (`views.related_views`), rendered as *crops* around the box's
+  relevant views (`views.related_views`, ranked by the geometric terms only: the
+  image-similarity term is left off), rendered as *crops* around the box's
   projection at full training resolution: a tiny object gets the whole step's loss,
   at full detail, for the cost of a few thousand pixels.
 * **Progressive resolution.** Full-image steps run at 8×, 4×, 2× the training
@@ -29,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import sys
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,7 +41,9 @@ from .data import Camera
 from .errorfield import ErrorField
 from .errors import PromptError
 from .losses import edge_loss
-from .prompts import PromptBox, center_prompt, check_visible, load_prompts, project_box, prompts_from_json
+from .prompts import (
+    PromptBox, check_visible, load_prompts, placement_warnings, project_box, prompts_from_json, scene_center_prompt,
+)
 from .strategies.promptgs import LAMBDA_DSSIM, LAMBDA_EDGE, LAMBDA_L1, append_gaussians, carve_prompt
 from .views import RELATED_MULTIVIEW, SINGLE, ViewSchedule, related_views, views_cap_from_memory
 
@@ -47,16 +51,28 @@ log = logging.getLogger("promptgs.focus")
 
 PROGRESSIVE_LEVELS = (8, 4, 2)
 PROGRESSIVE_FRACTION = 7 / 30  # of the run, per level (paper: 7000 of 30000 steps)
-MIN_PROGRESSIVE_WIDTH = 64
+# A level that would leave fewer pixels across is replaced by the coarsest that does not.
+# At 64, the 320 px views of the `sparse` mountain trained at 80 px for 47% of the run;
+# the full-size statistics steps then found the model so loosely fitted that outside the
+# prompts PromptGS grew 1.21x 3DGS's Gaussians (115k against 95k, seed 0); at 100 (2x
+# below full size for 70% of the run) 0.91x. The mountain (480 px: 4x, 4x, 2x), tumbler
+# and fern (2x) are unchanged.
+MIN_PROGRESSIVE_WIDTH = 100
 RESAMPLED_OPACITY = 0.5  # of the Gaussians resampling adds
 MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
-# While densification runs in the low-resolution phase, every FULL_SIZE_EVERY-th
-# single-view step renders at full size: the growth statistics come from those.
+# While densification runs, every FULL_SIZE_EVERY-th single-view step renders the whole
+# view at full size with 3DGS's screen filter: the growth statistics outside the prompts
+# come from those alone, so that PromptGS grows there as 3DGS would.
 FULL_SIZE_EVERY = 2
 # Screen filter (px²) of the low-resolution steps: 3DGS's. At 4x below full size the
 # run's narrower filter (0.1) let the terrain alias: PromptGS lost 1.6 dB of PSNR on the
 # mountain (one seed) when every step used it, and 0.1 dB with this split.
 LOW_RES_SCREEN_FILTER = BASELINE_SCREEN_FILTER
+# Screen filter of the statistics steps (`PromptFocus.is_statistics_step`): 3DGS's. Under
+# the narrow filter a flat surface drawn by Gaussians smaller than a pixel shows gaps,
+# their gradients rise, and growth fills them: on a 64 px toy scene PromptGS grew 82k
+# Gaussians against 3DGS's 65k, and 60k with 3DGS's filter on these steps.
+STATISTICS_SCREEN_FILTER = BASELINE_SCREEN_FILTER
 
 
 @dataclass
@@ -67,6 +83,7 @@ class TrainView:
     gt: torch.Tensor  # [H, W, 3]
     source: int  # index of the training camera
     crop: bool = False  # a crop around a prompt (related-view step), not the whole image
+    statistics: bool = False  # a statistics step: the only kind that votes for growth outside the prompts
     screen_filter: float | None = None  # px²; None: the run's (full-size renders)
 
 
@@ -78,8 +95,9 @@ def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Ca
     return dataclasses.replace(camera, width=width, height=height, K=K)
 
 
-def load_prompt_setting(cfg) -> list[PromptBox]:
-    """The prompt boxes a config asks for: a file or inline object, and/or the centre box."""
+def load_prompt_setting(cfg, scene=None) -> list[PromptBox]:
+    """The prompt boxes a config asks for: a file or inline object, and/or the centre box
+    (defined in ``scene``'s own frame: `prompts.scene_center_prompt`)."""
     boxes: list[PromptBox] = []
     if cfg.prompts is not None:
         if isinstance(cfg.prompts, (dict, list)):
@@ -87,8 +105,18 @@ def load_prompt_setting(cfg) -> list[PromptBox]:
         else:
             boxes += load_prompts(cfg.prompts)
     if cfg.center_prompt:
-        boxes.append(center_prompt())
+        if scene is None:
+            raise PromptError("the centre prompt needs the scene (its cameras and points)")
+        box = scene_center_prompt(scene.train_cameras, scene.points)
+        log.info("centre prompt at %s, edge %.4g", [round(v, 4) for v in box.center], box.size[0])
+        boxes.append(box)
     return boxes
+
+
+def warn(line: str) -> None:
+    """A warning for the user: in the run's log, and on stderr (stdout may carry events)."""
+    log.warning(line)
+    print(f"promptgs: warning: {line}", file=sys.stderr)
 
 
 def available_memory_bytes() -> int:
@@ -138,6 +166,8 @@ class PromptFocus:
     def set_prompts(self, prompts: list[PromptBox]) -> None:
         if prompts:
             check_visible(prompts, self.full_cameras, source="prompts")
+            for line in placement_warnings(prompts, self.full_cameras, self.trainer.scene.points, [c.name for c in self.full_cameras]):
+                warn(line)
         self.prompts = list(prompts)
         self.related = related_views(self.prompts, self.full_cameras, self.related_k) if self.prompts else []
         # Focused multiview steps need a few views that agree; a prompt seen by fewer
@@ -146,7 +176,7 @@ class PromptFocus:
         # them at the others' expense.
         for i, views in enumerate(self.related):
             if len(views) < MIN_RELATED_VIEWS:
-                log.warning("prompt %d is seen by %d training cameras (fewer than %d): no focused views for it", i, len(views), MIN_RELATED_VIEWS)
+                warn(f"prompt {i} is seen by {len(views)} training cameras (fewer than {MIN_RELATED_VIEWS}): no focused views for it")
         self.schedule.set_regions([v if len(v) >= MIN_RELATED_VIEWS else [] for v in self.related])
         self.trainer.strategy.set_prompts(self.prompts)
         log.info("%d prompts; related views %s", len(self.prompts), self.related)
@@ -158,7 +188,7 @@ class PromptFocus:
         for 7/30 of the run each, then full size, as in the paper. A level that would
         leave fewer than MIN_PROGRESSIVE_WIDTH pixels across uses the coarsest one that
         does not, so the low-resolution phase keeps its 70% of the run (a 480 px view:
-        4×, 4×, 2×; a 252 px view: 2× three times). Skipping such levels instead started
+        4×, 4×, 2×; a 320 or 252 px view: 2× three times; under 200 px, none). Skipping such levels instead started
         full-size steps at 47% of the run, and the one-box mountain run took 1.70× the
         3DGS time against 1.27×."""
         if not self.progressive:
@@ -170,18 +200,16 @@ class PromptFocus:
         return levels[stage] if stage < len(levels) else 1
 
     def is_statistics_step(self, step: int, kind: str, entry: int | None = None) -> bool:
-        """Whether a whole-view step renders at full size although the progressive
-        schedule is below it: every FULL_SIZE_EVERY-th single-view step (schedule
-        ``entry``, the step itself at one entry a step) while densification runs. The
-        PromptGS strategy takes its growth statistics from full-size steps only, so the
-        Gaussians grow where full-resolution gradients ask for them, as in 3DGS (about 30%
-        of the steps in that part of the run)."""
+        """Whether a single-view step is a statistics step: every FULL_SIZE_EVERY-th one
+        (schedule ``entry``, the step itself at one entry a step) while densification runs.
+        It renders the whole view at full size (although the progressive schedule may be
+        below it) with 3DGS's screen filter, and the PromptGS strategy takes the growth
+        statistics of the Gaussians outside the prompts from these steps alone: outside the
+        prompts they grow where 3DGS's would, measured as 3DGS measures (about 30% of the
+        steps in that part of the run)."""
         sched = self.trainer.schedule
         entry = step if entry is None else entry
-        return (
-            self.downscale_at(step) > 1 and step < sched.refine_stop_iter
-            and kind == SINGLE and entry % FULL_SIZE_EVERY == 0
-        )
+        return step < sched.refine_stop_iter and kind == SINGLE and entry % FULL_SIZE_EVERY == 0
 
     def _crop_views(self, region: int, views: list[int]) -> list[TrainView]:
         box = self.prompts[region]
@@ -217,12 +245,13 @@ class PromptFocus:
             views = self._crop_views(batch.region, batch.views)
             if views:
                 return views
-        factor = 1 if self.is_statistics_step(step, batch.kind, entry) else self.downscale_at(step)
-        screen_filter = LOW_RES_SCREEN_FILTER if factor > 1 else None
+        statistics = self.is_statistics_step(step, batch.kind, entry)
+        factor = 1 if statistics else self.downscale_at(step)
+        screen_filter = STATISTICS_SCREEN_FILTER if statistics else LOW_RES_SCREEN_FILTER if factor > 1 else None
         out = []
         for v in batch.views:
             cam = self.full_cameras[v].downscaled(factor)
-            out.append(TrainView(cam, cam.load_image(), v, screen_filter=screen_filter))
+            out.append(TrainView(cam, cam.load_image(), v, screen_filter=screen_filter, statistics=statistics))
         size = (out[0].camera.width, out[0].camera.height)
         return [t for t in out if (t.camera.width, t.camera.height) == size]
 
@@ -258,6 +287,8 @@ class PromptFocus:
         info["view_loss"] = view_loss
         info["error_map"] = l1_map
         info["crop_step"] = any(v.crop for v in views)
+        # Only statistics steps vote for growth outside the prompts (see is_statistics_step).
+        info["votes_outside"] = all(v.statistics for v in views)
         # Below full resolution (progressive schedule); a crop is at full resolution.
         info["downscale"] = 1.0 if info["crop_step"] else self.full_cameras[views[0].source].width / views[0].camera.width
         if not self.feeds_field(step):

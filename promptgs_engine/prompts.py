@@ -43,6 +43,9 @@ __all__ = [
     "project_box",
     "check_visible",
     "center_prompt",
+    "scene_center_prompt",
+    "scene_look_point",
+    "placement_warnings",
     "camera_center",
 ]
 
@@ -167,8 +170,105 @@ class PromptBox:
 
 
 def center_prompt(weight: float = 1.0) -> PromptBox:
-    """The paper's "Ours*" prompt: an axis-aligned unit box (1 × 1 × 1) at the origin."""
+    """The paper's "Ours*" prompt taken literally: an axis-aligned unit box (1 × 1 × 1) at
+    the origin. It means what the paper means only in a normalised scene; the trainer's
+    ``--center-prompt`` uses `scene_center_prompt`."""
     return PromptBox((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (1.0, 0.0, 0.0, 0.0), weight)
+
+
+# Edge of the centre box as a fraction of the median camera-to-centre distance: at a 60°
+# field of view such a box spans about a quarter of the image width from a typical view.
+CENTER_BOX_FRACTION = 0.25
+
+
+# Weight of each camera's SfM depth along its axis in `scene_look_point`, against 1 for the
+# distance across its axis: it only decides where the axes alone do not (parallel axes).
+DEPTH_PULL = 0.02
+
+
+def scene_look_point(cameras: Sequence[CameraLike], points: Any) -> tuple[np.ndarray, float]:
+    """Where the cameras look, in the scene's own frame, and how far they are from it.
+
+    The point closest to all optical axes in least squares (where the views converge),
+    with a weak pull (`DEPTH_PULL`) towards each camera's median SfM-point depth along its
+    axis (of the points in its image), which settles the depth where the axes are nearly
+    parallel (a forward-facing capture such as fern). Returns the point and the median
+    distance of the camera centres from it."""
+    pts = _as_np(points)
+    lhs = np.zeros((3, 3))
+    rhs = np.zeros(3)
+    centres = []
+    for cam in cameras:
+        w2c = _as_np(cam.world_to_camera)
+        k = _as_np(cam.K)
+        centre = camera_center(cam)
+        axis = w2c[2, :3]  # the optical axis in world: third row of R
+        centres.append(centre)
+        across = np.eye(3) - np.outer(axis, axis)
+        lhs += across
+        rhs += across @ centre
+        z = pts @ w2c[2, :3] + w2c[2, 3]
+        front = z > 1e-6
+        if front.any():
+            uvw = pts[front] @ w2c[:3, :3].T + w2c[:3, 3]
+            uv = (uvw @ k.T)[:, :2] / z[front, None]
+            in_image = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+            if in_image.any():
+                depth = float(np.median(z[front][in_image]))
+                lhs += DEPTH_PULL * np.outer(axis, axis)
+                rhs += DEPTH_PULL * axis * (axis @ centre + depth)
+    try:
+        look = np.linalg.solve(lhs, rhs)
+    except np.linalg.LinAlgError:  # one camera, or every axis parallel with no points seen
+        look = np.median(pts, axis=0) if len(pts) else np.mean(centres, axis=0)
+    distance = float(np.median(np.linalg.norm(np.stack(centres) - look, axis=1)))
+    return look, distance
+
+
+def scene_center_prompt(
+    cameras: Sequence[CameraLike], points: Any, weight: float = 1.0, fraction: float = CENTER_BOX_FRACTION
+) -> PromptBox:
+    """The centre prompt ("Ours*") in the scene's own frame: an axis-aligned cube at the
+    point the cameras look at (`scene_look_point`), its edge ``fraction`` of the median
+    camera distance from that point. A COLMAP model's origin and scale are arbitrary, so
+    the paper's unit box at the origin lands anywhere (among the cameras of tumbler and
+    fern); this box covers the same share of a typical view in every capture."""
+    look, distance = scene_look_point(cameras, points)
+    edge = max(fraction * distance, 1e-6)
+    return PromptBox(tuple(float(v) for v in look), (edge, edge, edge), (1.0, 0.0, 0.0, 0.0), weight)
+
+
+# A box whose centre is nearer to a camera than this fraction of the cameras' median
+# distance from where they look lies among the cameras (`placement_warnings`).
+AMONG_CAMERAS_FRACTION = 0.25
+
+
+def placement_warnings(
+    boxes: Sequence[PromptBox], cameras: Sequence[CameraLike], points: Any, names: Sequence[str] | None = None
+) -> list[str]:
+    """One line per box that lies among the cameras rather than in the scene they look at:
+    its centre is within a camera's half-diagonal of the box, or nearer to some camera
+    than `AMONG_CAMERAS_FRACTION` of the cameras' median distance from their look point
+    (`scene_look_point`). Such a box is seen from very close or from inside, by few views
+    (the paper's unit box at a COLMAP origin often lands there). A box that no camera
+    sees at all is an error instead (`check_visible`)."""
+    out: list[str] = []
+    if not cameras or not boxes:
+        return out
+    centres = np.stack([camera_center(c) for c in cameras])
+    _, distance = scene_look_point(cameras, points)
+    for i, box in enumerate(boxes):
+        reach = max(0.5 * float(np.linalg.norm(box.size)), AMONG_CAMERAS_FRACTION * distance)
+        dist = np.linalg.norm(centres - np.asarray(box.center), axis=1)
+        j = int(np.argmin(dist))
+        if dist[j] <= reach:
+            who = names[j] if names is not None else f"camera {j}"
+            out.append(
+                f"prompt {i} (center {[round(float(v), 3) for v in box.center]}, size {[round(float(v), 3) for v in box.size]}) "
+                f"lies among the cameras: {who} is {dist[j]:.3g} units from its centre, while the cameras are a median "
+                f"{distance:.3g} units from where they look; check where the box is"
+            )
+    return out
 
 
 # -------------------------------------------------------------------------------------

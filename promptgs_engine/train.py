@@ -153,7 +153,7 @@ class Trainer:
         if cfg.strategy == "promptgs":
             from .focus import PromptFocus, load_prompt_setting
 
-            self.focus = PromptFocus(self, load_prompt_setting(cfg))
+            self.focus = PromptFocus(self, load_prompt_setting(cfg, self.scene))
             self.strategy.attention_fn = lambda pts: self.focus.field.attention(pts.cpu(), self.focus.prompts)
         self.batched = BatchedSteps(self) if self.dist.distributed or self.batch_size > 1 else None
 
@@ -301,6 +301,10 @@ class Trainer:
         self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, step, info, packed=False)
         if self.focus is not None:
             self.focus.after_step(step)
+        if self.cfg.compact:
+            from .compaction import maybe_compact
+
+            maybe_compact(self, step)
         self.check_finite()
 
     def check_finite(self) -> None:
@@ -452,6 +456,8 @@ class Trainer:
             "sky_points": self.n_sky_points,
             "world_size": self.dist.world_size,
             "batch_size": self.batch_size,
+            "growth": self.strategy_state.get("ledger"),
+            "compaction": self.strategy_state.get("compaction"),
         }
 
 

@@ -47,19 +47,76 @@ def _info(n, grads, view_loss=1.0, w=100, h=100):
 UNIT_BOX = PromptBox(center=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0))
 
 
-def test_prompt_lowers_the_growth_threshold_only_inside_the_box():
-    pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])  # inside, outside
+def _set_stats(s, state, params, score, grads):
+    """Statistics as after a refinement interval: one view each, the given mean score per
+    view and mean view-space gradient (in units of the 3DGS threshold)."""
+    s._ensure_state(params, state)
+    n = params["means"].shape[0]
+    state["views"] = torch.ones(n)
+    state["score"] = torch.as_tensor(score, dtype=torch.float32).clone()
+    state["error"] = torch.zeros(n)
+    state["count"] = torch.ones(n)
+    state["grad2d"] = torch.as_tensor(grads, dtype=torch.float32) * s.grow_grad2d
+
+
+FILLER = 30  # Gaussians far outside the box, idle: the prompt holds a small part of the scene
+
+
+def _box_and_outside(n_inside, n_outside=1):
+    """``n_inside`` points in the unit box, ``n_outside`` outside it, then FILLER more outside."""
+    inside = torch.stack([torch.linspace(-0.4, 0.4, n_inside), torch.zeros(n_inside), torch.zeros(n_inside)], dim=1)
+    outside = torch.stack([torch.linspace(3.0, 5.0, n_outside), torch.zeros(n_outside), torch.zeros(n_outside)], dim=1)
+    filler = torch.stack([torch.full((FILLER,), -6.0), torch.linspace(-3.0, 3.0, FILLER), torch.zeros(FILLER)], dim=1)
+    return torch.cat([inside, outside, filler])
+
+
+def test_prompt_growth_is_the_score_tail_placed_by_attention():
+    # Twenty Gaussians in the box, none with a gradient over 3DGS's threshold: the two in
+    # the long tail of the score distribution grow (Tukey's fence), the rest do not; the
+    # one outside, at half the threshold, does not either.
+    pts = _box_and_outside(20)
     params, opts = _params(pts)
     s, state = _strategy([UNIT_BOX])
-    # Both have a mean gradient at half the 3DGS threshold (after gsplat's w/2 scaling).
-    g = 0.5 * s.grow_grad2d / (100 / 2.0)
-    s._update_state(params, state, _info(2, torch.tensor([[g, 0.0], [g, 0.0]])))
-    n_dupli, n_split = s._grow_gs(params, opts, state, step=100)
-    assert n_dupli + n_split == 1
-    assert params["means"].shape[0] == 3
-    # The new Gaussian is a clone of the one in the box, and is marked as born now.
-    assert torch.equal(params["means"][-1].detach(), pts[0])
-    assert state["born"][-1] == 100
+    n = 21 + FILLER
+    score = torch.cat([1.0 + 0.01 * torch.arange(18.0), torch.tensor([3.0, 2.9]), torch.ones(1 + FILLER)])
+    _set_stats(s, state, params, score, torch.full((n,), 0.5))
+    grow = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=100)
+    assert grow.nonzero().flatten().tolist() == [18, 19]
+    # The attention field decides where the quota goes: a Gaussian of ordinary score at a
+    # high-error place outranks the weaker of the two tail ones.
+    s.attention_fn = lambda p: torch.where(p[:, 0] < -0.39, 2.0, 0.0)  # only Gaussian 0 (in the box)
+    _set_stats(s, state, params, score, torch.full((n,), 0.5))
+    grow = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=100)
+    assert grow.nonzero().flatten().tolist() == [0, 18]
+    # Through _grow_gs: two clones, born now, and the statistics restart.
+    _set_stats(s, state, params, score, torch.full((n,), 0.5))
+    assert s._grow_gs(params, opts, state, step=100) == (2, 0)
+    assert params["means"].shape[0] == n + 2 and bool((state["born"][-2:] == 100).all())
+    assert float(state["score"].abs().sum()) == 0.0
+    ledger = state["ledger"]["refinements"][-1]
+    assert ledger["grown_inside"] == 2 and ledger["rule_inside"] == 0 and ledger["grown_outside"] == 0
+
+
+def test_inside_the_prompts_the_score_decides_growth_not_a_gradient_threshold():
+    # Twenty Gaussians in the box. Five have three times 3DGS's gradient threshold but an
+    # ordinary score; two are the score's tail with a gradient under even a quarter of
+    # the threshold (the lowered threshold prompts used to have). Only the tail grows:
+    # neither 3DGS's rule nor a lowered threshold selects anything inside the prompts.
+    pts = _box_and_outside(20)
+    params, _ = _params(pts)
+    s, state = _strategy([UNIT_BOX])
+    n = 21 + FILLER
+    score = torch.cat([1.0 + 0.01 * torch.arange(20.0), torch.ones(1 + FILLER)])
+    score[[10, 11]] = torch.tensor([3.0, 2.9])
+    grads = torch.cat([torch.full((5,), 3.0), torch.full((15,), 0.2), torch.zeros(1 + FILLER)])
+    _set_stats(s, state, params, score, grads)
+    grow = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=100)
+    assert grow.nonzero().flatten().tolist() == [10, 11]
+    entry = state["ledger"]["refinements"][-1]
+    assert entry["rule_inside"] == 5 and entry["grown_inside"] == 2
+    # The quota follows the score distribution: a flat one has no tail, and nothing grows.
+    _set_stats(s, state, params, torch.ones(n), grads)
+    assert int(s.growth_candidates(params, state, state["grad2d"] / state["count"], step=200).sum()) == 0
 
 
 def test_a_prompt_holding_most_of_the_scene_does_not_lower_the_threshold():
@@ -94,28 +151,60 @@ def test_outside_the_prompts_the_largest_gradients_grow_not_the_highest_scores()
     assert state["resampled"] == 0  # counted once, at the refinement that gave way
 
 
-def _prompt_and_outside_candidates(**kw):
-    # Inside: two Gaussians at half the 3DGS threshold (candidates only because the
-    # prompt lowers it) and one above it. Outside: three above it, by rising gradient.
-    pts = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [3.0, 0.0, 0.0], [4.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+def _prompt_and_outside_candidates(n_outside=3, **kw):
+    # Inside: twenty Gaussians under 3DGS's threshold, two of them in the score's tail
+    # (they grow where 3DGS would grow none). Outside: candidates above the threshold,
+    # by rising gradient.
+    pts = _box_and_outside(20, n_outside)
     params, opts = _params(pts)
     s, state = _strategy([UNIT_BOX], **kw)
-    unit = s.grow_grad2d / (100 / 2.0)
-    g = torch.tensor([0.5, 0.5, 2.0, 1.5, 2.5, 3.5]) * unit
-    s._update_state(params, state, _info(6, torch.stack([g, torch.zeros(6)], dim=1)))
+    score = torch.cat([1.0 + 0.01 * torch.arange(18.0), torch.tensor([3.0, 2.9]), torch.ones(n_outside + FILLER)])
+    grads = torch.cat([torch.full((20,), 0.5), 1.5 + torch.arange(float(n_outside)), torch.zeros(FILLER)])
+    _set_stats(s, state, params, score, grads)
     return s, state, params, opts, pts
 
 
 def test_outside_growth_gives_way_to_the_prompts_extra_growth():
-    # 3DGS would grow 4 (the four above its threshold). The prompt adds 2 under it, so
-    # the 2 weakest outside candidates give way: the count grows as 3DGS's would.
+    # 3DGS would grow the 3 outside candidates. The prompt adds 2, so the 2 weakest
+    # outside candidates give way: the count grows as 3DGS's would.
     s, state, params, opts, pts = _prompt_and_outside_candidates()
-    assert sum(s._grow_gs(params, opts, state, step=100)) == 4
-    grown = params["means"][6:].detach()
-    assert sorted(round(float(x), 3) for x in grown[:, 0]) == [0.0, 0.1, 0.2, 5.0]
-    # Without the offset, both grow: 6.
+    assert sum(s._grow_gs(params, opts, state, step=100)) == 3
+    grown = params["means"][23 + FILLER :].detach()
+    assert sorted(round(float(x), 3) for x in grown[:, 0]) == [0.358, 0.4, 5.0]
+    # Without the offset, all grow: 5.
     s, state, params, opts, _ = _prompt_and_outside_candidates(outside_offset=False)
-    assert sum(s._grow_gs(params, opts, state, step=100)) == 6
+    assert sum(s._grow_gs(params, opts, state, step=100)) == 5
+
+
+def test_what_outside_growth_cannot_offset_is_carried_to_the_next_refinement():
+    # One outside candidate against two extra prompt Gaussians: it gives way, and the one
+    # left over is owed at the next refinement, where one of two outside candidates gives way.
+    s, state, params, opts, _ = _prompt_and_outside_candidates(n_outside=1)
+    assert sum(s._grow_gs(params, opts, state, step=100)) == 2
+    assert state["debt"] == 1
+    n = params["means"].shape[0]
+    grads = torch.zeros(n)
+    grads[21:23] = 2.0  # two outside candidates (in the filler), and nothing in the box's tail now
+    _set_stats(s, state, params, torch.ones(n), grads)
+    keep = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=200)
+    assert int(keep.sum()) == 1 and state["debt"] == 0
+
+
+def test_resampled_gaussians_that_stay_faint_are_removed_and_repay_their_cost():
+    pts = _box_and_outside(4)
+    params, opts = _params(pts, opacity=0.02)  # all faint, under carve_keep_opacity
+    s, state = _strategy([UNIT_BOX], protect_steps=10_000)
+    s._ensure_state(params, state)
+    state["carved"][:2] = 1.0  # the first two were resampled, at step 100
+    state["born"][:] = 100.0
+    state["debt"] = 5
+    # Right after an opacity reset nothing is judged; one refinement interval later the
+    # faint resampled ones go, though young Gaussians in prompts are otherwise protected.
+    s.reset_every = 1000
+    assert int(s.idle_resampled(params, state, step=1050).sum()) == 0
+    assert s._prune_gs(params, opts, state, step=1200) == 2
+    assert params["means"].shape[0] == 3 + FILLER and state["debt"] == 3
+    assert state["ledger"]["resampled_removed"] == 2
 
 
 def test_low_resolution_steps_add_nothing_to_the_growth_statistics():
@@ -175,15 +264,13 @@ def test_score_ranks_a_large_gradient_in_a_high_loss_view_above_an_idle_gaussian
 
 
 def test_budget_caps_growth_and_prefers_prompt_candidates():
-    pts = torch.tensor([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [4.0, 0.0, 0.0]])
-    params, opts = _params(pts)
-    s, state = _strategy([UNIT_BOX], budget=4)
-    g = 10 * s.grow_grad2d / 50.0  # everyone far above threshold
-    s._update_state(params, state, _info(3, torch.tensor([[g, 0.0]] * 3)))
+    # Two prompt Gaussians in the score's tail and three outside candidates, room for two.
+    s, state, params, opts, _ = _prompt_and_outside_candidates(outside_offset=False)
+    n = params["means"].shape[0]
+    s.budget = n + 2
     s._grow_gs(params, opts, state, step=100)
-    assert params["means"].shape[0] == 4
-    grown_from_inside = (params["means"][3:].detach().norm(dim=-1) < 1.0).all()
-    assert bool(grown_from_inside)
+    assert params["means"].shape[0] == n + 2
+    assert bool((params["means"][n:].detach().norm(dim=-1) < 1.0).all())  # both grown from inside
 
 
 def test_young_gaussians_in_prompts_survive_the_opacity_prune():

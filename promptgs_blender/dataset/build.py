@@ -58,8 +58,9 @@ def _nodes(material: Any) -> tuple[Any, Any]:
     return tree, out
 
 
-def _terrain_material() -> Any:
-    """Vertex colours with fine procedural variation and bump, so images hold SIFT texture."""
+def _terrain_material(texture: float = 1.0) -> Any:
+    """Vertex colours with fine procedural variation and bump, so images hold SIFT texture;
+    ``texture`` scales both (1: the mountain presets; less: a smoother ground)."""
     mat = bpy.data.materials.new("terrain")
     mat.use_nodes = True
     tree, out = _nodes(mat)
@@ -75,8 +76,8 @@ def _terrain_material() -> Any:
     ramp = n.new("ShaderNodeMapRange")
     ramp.inputs["From Min"].default_value = 0.3
     ramp.inputs["From Max"].default_value = 0.7
-    ramp.inputs["To Min"].default_value = 0.6
-    ramp.inputs["To Max"].default_value = 1.4
+    ramp.inputs["To Min"].default_value = 1.0 - 0.4 * texture
+    ramp.inputs["To Max"].default_value = 1.0 + 0.4 * texture
     tree.links.new(fine.outputs["Fac"], ramp.inputs["Value"])
     mix = n.new("ShaderNodeMix")
     mix.data_type = "RGBA"
@@ -89,7 +90,7 @@ def _terrain_material() -> Any:
     grain.inputs["Detail"].default_value = 2.0
     tree.links.new(coord.outputs["Object"], grain.inputs["Vector"])
     bump = n.new("ShaderNodeBump")
-    bump.inputs["Strength"].default_value = 0.3
+    bump.inputs["Strength"].default_value = 0.3 * texture
     tree.links.new(grain.outputs["Fac"], bump.inputs["Height"])
     bsdf = n.new("ShaderNodeBsdfPrincipled")
     bsdf.inputs["Roughness"].default_value = 0.9
@@ -215,11 +216,11 @@ def build_scene(terrain: Terrain, layout: dict[str, Any], params: dict[str, Any]
     scorch = [(f["centre"][0], f["centre"][1]) for f in layout["flames"]]
     colours = terrain_colors(
         np.random.default_rng(layout["terrain"]["colour_seed"]), terrain, float(params["snow_line"]),
-        scorch, 1.5 * float(params["flame_height"]),
+        scorch, 1.5 * float(params["flame_height"]), colour_jitter=float(params.get("colour_jitter", 0.2)),
     )
     terrain_obj = _grid_object("terrain", terrain, coll)
     _add_colour_attribute(terrain_obj, "terrain_colour", np.concatenate([colours, np.ones((len(colours), 1))], axis=1))
-    terrain_obj.data.materials.append(_terrain_material())
+    terrain_obj.data.materials.append(_terrain_material(float(params.get("texture_strength", 1.0))))
     terrain_obj.color = (0.0, 0.0, 0.0, 1.0)
 
     # Flames, each with a warm point light for the glow on the ground

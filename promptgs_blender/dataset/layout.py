@@ -357,7 +357,11 @@ def make_layout(params: dict[str, Any]) -> tuple[Terrain, dict[str, Any]]:
     """The terrain and a JSON-ready description of cameras, flames and drones."""
     check_params(params)
     rng = np.random.default_rng(int(params["seed"]))
-    terrain = make_terrain(rng, float(params["terrain_size"]), int(params["terrain_resolution"]), float(params["rim_height"]))
+    terrain = make_terrain(
+        rng, float(params["terrain_size"]), int(params["terrain_resolution"]), float(params["rim_height"]),
+        ridge_octaves=int(params.get("ridge_octaves", 6)), ridge_amplitude=float(params.get("ridge_amplitude", 1.0)),
+        hill_octaves=int(params.get("hill_octaves", 4)),
+    )
     cams = make_cameras(rng, params, terrain)
     flames = place_flames(rng, params, terrain)
     drones = place_drones(rng, params, terrain, cams, flames)

@@ -98,8 +98,20 @@ class Terrain:
         return np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]], axis=-1).reshape(-1, 4)
 
 
-def make_terrain(rng: np.random.Generator, size: float, resolution: int, rim_height: float) -> Terrain:
-    """A valley ringed by ridged peaks, ``rim_height`` metres high at the border on average."""
+def make_terrain(
+    rng: np.random.Generator,
+    size: float,
+    resolution: int,
+    rim_height: float,
+    ridge_octaves: int = 6,
+    ridge_amplitude: float = 1.0,
+    hill_octaves: int = 4,
+) -> Terrain:
+    """A valley ringed by ridged peaks, ``rim_height`` metres high at the border on average.
+
+    ``ridge_octaves`` / ``hill_octaves``: octaves of the ridged and the rolling noise
+    (fewer: smoother ground); ``ridge_amplitude`` scales the ridges (the defaults give the
+    mountain of the ``tiny``/``small``/``paper`` presets)."""
     n = resolution
     c = np.linspace(-size / 2.0, size / 2.0, n)
     xx, yy = np.meshgrid(c, c)
@@ -108,9 +120,9 @@ def make_terrain(rng: np.random.Generator, size: float, resolution: int, rim_hei
     phase = rng.uniform(0, 2 * np.pi, size=3)
     wobble = 0.08 * np.sin(3 * angle + phase[0]) + 0.05 * np.sin(5 * angle + phase[1])
     bowl = rim_height * _smoothstep(0.3 + wobble, 1.0 + wobble, r)
-    ridges = _fractal(rng, n, base_cells=4, octaves=6, ridged=True)
-    hills = _fractal(rng, n, base_cells=3, octaves=4, ridged=False)
-    ridge_amp = rim_height * (0.22 + 0.7 * _smoothstep(0.2, 0.9, r))
+    ridges = _fractal(rng, n, base_cells=4, octaves=ridge_octaves, ridged=True)
+    hills = _fractal(rng, n, base_cells=3, octaves=hill_octaves, ridged=False)
+    ridge_amp = ridge_amplitude * rim_height * (0.22 + 0.7 * _smoothstep(0.2, 0.9, r))
     heights = bowl + ridge_amp * ridges + 0.15 * rim_height * (hills - 0.5)
     heights -= heights[n // 2, n // 2]
     return Terrain(size=size, heights=heights)
@@ -130,8 +142,10 @@ def terrain_colors(
     snow_line: float,
     scorch_centres: list[tuple[float, float]],
     scorch_radius: float,
+    colour_jitter: float = 0.2,
 ) -> np.ndarray:
-    """[n*n, 3] linear RGB vertex colours by slope and height, with per-vertex variation."""
+    """[n*n, 3] linear RGB vertex colours by slope and height, with per-vertex brightness
+    variation of ±``colour_jitter``."""
     n = terrain.n
     nz = terrain.normals_z()
     h = terrain.heights
@@ -150,5 +164,6 @@ def terrain_colors(
         d = np.sqrt((xx - cx) ** 2 + (yy - cy) ** 2)
         burnt = _smoothstep(scorch_radius, 0.4 * scorch_radius, d + 0.6 * scorch_radius * (patch - 0.5))
         col = col * (1 - burnt[..., None]) + SCORCHED[None, None] * burnt[..., None]
-    col *= rng.uniform(0.8, 1.2, size=(n, n, 1))
+    jitter = rng.uniform(0.8, 1.2, size=(n, n, 1))  # drawn at every setting: the same random stream
+    col *= jitter if colour_jitter == 0.2 else 1.0 + (jitter - 1.0) * (colour_jitter / 0.2)
     return np.clip(col, 0.0, 1.0).reshape(-1, 3)

@@ -13,8 +13,9 @@ paper's Ours*), ``promptgs-1`` (one box: the dataset's ``prompts_1.json``, else 
 around its suggested prompts), ``promptgs-2`` (the dataset's ``prompts_2.json``, else its
 suggested prompts, a box per object group), ``promptgs-auto`` (prompts proposed by the
 error field), ``promptgs-propose`` (no box drawn: prompts proposed where several views
-agree the render misses a small object, ``--propose-prompts``). A prompt method on a scene without those prompts is not applicable and is
-skipped with a note.
+agree the render misses a small object, ``--propose-prompts``). A prompt method on a scene
+without those prompts is not applicable and is skipped with a note. Any method with
+``+compact`` appended (``3dgs+compact``, ``promptgs-1+compact``) trains with ``--compact``.
 
 Processes: with ``nproc`` N > 1 (``--nproc``, or the grid file's ``"nproc"``) every cell
 trains as N ranks on this machine (``promptgs train --nproc N``, one view per rank and
@@ -40,7 +41,9 @@ from ..prompts import PromptBox, prompts_from_json, save_prompts
 from .process import NAN, OK, classify, error_message, run_logged
 
 SCHEMA = "promptgs-bench/1"
-METHODS = ("3dgs", "absgs", "promptgs-center", "promptgs-1", "promptgs-2", "promptgs-auto", "promptgs-propose")
+BASE_METHODS = ("3dgs", "absgs", "promptgs-center", "promptgs-1", "promptgs-2", "promptgs-auto", "promptgs-propose")
+COMPACT_SUFFIX = "+compact"
+METHODS = BASE_METHODS + tuple(m + COMPACT_SUFFIX for m in BASE_METHODS)
 AUTO_PROMPTS = 3  # proposals taken from the error field by promptgs-auto
 
 
@@ -145,12 +148,23 @@ class Cell:
         return f"{self.scene.name}/{self.method}/{budget}/i{self.iterations}/s{self.seed}{procs}"
 
     @property
+    def base_method(self) -> str:
+        """The method without ``+compact``."""
+        return self.method.removesuffix(COMPACT_SUFFIX)
+
+    @property
+    def compact(self) -> bool:
+        return self.method.endswith(COMPACT_SUFFIX)
+
+    @property
     def strategy(self) -> str:
-        return "promptgs" if self.method.startswith("promptgs") else self.method
+        base = self.base_method
+        return "promptgs" if base.startswith("promptgs") else base
 
     @property
     def prompt(self) -> str | None:
-        return self.method.split("-", 1)[1] if self.method.startswith("promptgs-") else None
+        base = self.base_method
+        return base.split("-", 1)[1] if base.startswith("promptgs-") else None
 
     def run_dir(self, out: Path) -> Path:
         return out / "runs" / self.id.replace("/", "_")
@@ -212,6 +226,8 @@ def job_for(cell: Cell, out: Path) -> dict | None:
     }
     if cell.nproc > 1:
         job["nproc"] = cell.nproc
+    if cell.compact:
+        job["compact"] = True
     if cell.prompt == "center":
         job["center_prompt"] = True
     elif cell.prompt == "auto":

@@ -7,6 +7,9 @@ docs/interfaces.md) and writes into DIR:
   mean ± std over seeds, with the Pareto front (higher quality, less time);
 - ``psnr_vs_gaussians.png``: PSNR against the Gaussian count; budget sweeps of a method
   joined as a curve;
+- ``compaction.png``: PSNR (and masked PSNR where the scene has masks) against the Gaussian
+  count, each method joined to the same method with ``+compact`` (written when the
+  results hold compacted cells);
 - ``recall.png``: tiny-object recall per method, per scene that has it;
 - ``table.md``: per-scene tables in the layout of the paper's Table II, a "Gaussian
   economy" table per budget sweep, and the failed cells with their messages;
@@ -128,8 +131,16 @@ def current_rows(rows: Iterable[dict]) -> list[dict]:
 # ---------------------------------------------------------------------------- aggregation
 
 
-def _method_rank(method: str) -> tuple[int, str]:
-    return (METHOD_ORDER.index(method), "") if method in METHOD_ORDER else (len(METHOD_ORDER), method)
+COMPACT_SUFFIX = "+compact"
+
+
+def _method_rank(method: str) -> tuple[int, int, str]:
+    """Known methods in METHOD_ORDER, each followed by its ``+compact`` variant."""
+    base = method.removesuffix(COMPACT_SUFFIX)
+    compact = int(method.endswith(COMPACT_SUFFIX))
+    if base in METHOD_ORDER:
+        return (METHOD_ORDER.index(base), compact, "")
+    return (len(METHOD_ORDER), compact, method)
 
 
 def _budget_rank(budget: Any) -> tuple[int, float]:
@@ -202,15 +213,19 @@ def pareto_front(points: list[tuple[float | None, float | None]]) -> list[int]:
 
 
 def method_name(method: str) -> str:
-    return METHOD_NAMES.get(method, method)
+    base = method.removesuffix(COMPACT_SUFFIX)
+    name = METHOD_NAMES.get(base, base)
+    return name + ", compacted" if method.endswith(COMPACT_SUFFIX) else name
 
 
 def method_styles(methods: Iterable[str]) -> dict[str, tuple[str, str]]:
-    """(colour, marker) per method: fixed for the known methods, then cool colours in order."""
+    """(colour, marker) per method: fixed for the known methods (a ``+compact`` variant
+    shares its method's; charts draw it hollow), then cool colours in order."""
     styles, extra = {}, 0
     for m in sorted(set(methods), key=_method_rank):
-        if m in METHOD_STYLES:
-            styles[m] = METHOD_STYLES[m]
+        base = m.removesuffix(COMPACT_SUFFIX)
+        if base in METHOD_STYLES:
+            styles[m] = METHOD_STYLES[base]
         else:
             styles[m] = _OTHER_STYLES[extra % len(_OTHER_STYLES)]
             extra += 1
@@ -334,6 +349,7 @@ def table_markdown(aggs: list[dict], failed: list[dict], loads: dict[str, list[f
             "",
         ]
         lines += _economy_lines(cells)
+        lines += _compaction_lines(cells)
     if failed:
         lines += ["## Failed cells", ""]
         lines += [f"- `{r['cell']}`: {r.get('error') or 'no message'}" for r in failed]
@@ -373,6 +389,47 @@ def _economy_lines(cells: list[dict]) -> list[str]:
     return lines + [""]
 
 
+def compaction_pairs(cells: list[dict]) -> list[tuple[dict, dict]]:
+    """(cell, the same cell compacted) for every method run both ways (same budget and iterations)."""
+    by_key = {(a["method"], repr(a["budget"]), a["iterations"]): a for a in cells}
+    pairs = []
+    for (method, budget, iterations), a in by_key.items():
+        if method.endswith(COMPACT_SUFFIX):
+            continue
+        c = by_key.get((method + COMPACT_SUFFIX, budget, iterations))
+        if c is not None:
+            pairs.append((a, c))
+    return pairs
+
+
+def _compaction_lines(cells: list[dict]) -> list[str]:
+    """Per method run with and without ``--compact``: what compaction removes and costs."""
+    pairs = compaction_pairs(cells)
+    if not pairs:
+        return []
+    show_it = len({a["iterations"] for a, _ in pairs}) > 1
+    lines = [
+        "### Compaction",
+        "",
+        "| Method | Gaussians → compacted | share kept | ΔPSNR | Δmasked PSNR | Δrecall | time compacted / not |",
+        "|---|---|---|---|---|---|---|",
+    ]
+
+    def delta(key: str, fmt: str, a: dict, c: dict) -> str:
+        if a[f"{key}_mean"] is None or c[f"{key}_mean"] is None:
+            return "–"
+        return format(c[f"{key}_mean"] - a[f"{key}_mean"], fmt)
+
+    for a, c in pairs:
+        kept = c["n_gaussians_mean"] / a["n_gaussians_mean"] if a["n_gaussians_mean"] else float("nan")
+        time = c["wall_seconds_mean"] / a["wall_seconds_mean"] if a["wall_seconds_mean"] and c["wall_seconds_mean"] else float("nan")
+        lines.append(
+            f"| {cell_label(a, show_it)} | {a['n_gaussians_mean']:,.0f} → {c['n_gaussians_mean']:,.0f} | {kept:.2f}× "
+            f"| {delta('psnr', '+.2f', a, c)} | {delta('masked_psnr', '+.2f', a, c)} | {delta('recall', '+.2f', a, c)} | {time:.2f}× |"
+        )
+    return lines + ["", "Differences are of the means over seeds (compacted − not).", ""]
+
+
 # ---------------------------------------------------------------------------- charts
 
 
@@ -402,7 +459,8 @@ def _legend(ax, styles: dict[str, tuple[str, str]], methods: Iterable[str], extr
     from matplotlib.lines import Line2D
 
     handles = [
-        Line2D([], [], color=styles[m][0], marker=styles[m][1], ls="", label=method_name(m))
+        Line2D([], [], color=styles[m][0], marker=styles[m][1], ls="", label=method_name(m),
+               **({"mfc": "white"} if m.endswith(COMPACT_SUFFIX) else {}))
         for m in sorted(set(methods), key=_method_rank)
     ]
     ax.legend(handles=handles + (extra or []), fontsize=7, loc="best")
@@ -411,8 +469,9 @@ def _legend(ax, styles: dict[str, tuple[str, str]], methods: Iterable[str], extr
 def _plot_cell(ax, a: dict, x: str, y: str, styles: dict, show_it: bool) -> None:
     """One aggregated cell: a point with std error bars on both axes, and its label."""
     colour, marker = styles[a["method"]]
+    hollow = {"mfc": "white"} if a["method"].endswith(COMPACT_SUFFIX) else {}
     ax.errorbar(a[f"{x}_mean"], a[f"{y}_mean"], xerr=a[f"{x}_std"] or 0.0, yerr=a[f"{y}_std"] or 0.0,
-                fmt=marker, color=colour, ms=7, capsize=3, lw=1)
+                fmt=marker, color=colour, ms=7, capsize=3, lw=1, **hollow)
     ax.annotate(cell_label(a, show_it, short=True), (a[f"{x}_mean"], a[f"{y}_mean"]),
                 xytext=(5, 4), textcoords="offset points", fontsize=7)
 
@@ -473,6 +532,39 @@ def plot_psnr_vs_gaussians(aggs: list[dict], path: Path, styles: dict) -> bool:
         ax.grid(alpha=0.3)
         _legend(ax, styles, [a["method"] for a in cells])
     _save(plt, fig, path, "PSNR vs Gaussian count (budgets of one method joined)")
+    return True
+
+
+def plot_compaction(aggs: list[dict], path: Path, styles: dict) -> bool:
+    """Per scene, PSNR (and masked PSNR where there are masks) against the Gaussian count,
+    each method joined to its compacted run. False (nothing written) without pairs."""
+    panels = []
+    for scene, cells in _by_scene(aggs).items():
+        pairs = compaction_pairs(cells)
+        if not pairs:
+            continue
+        panels.append((scene, "psnr", "PSNR (dB)", pairs))
+        if any(a["masked_psnr_mean"] is not None for a, _ in pairs):
+            panels.append((scene, "masked_psnr", "masked PSNR (dB)", pairs))
+    if not panels:
+        return False
+    plt, fig, axes = _figure(len(panels))
+    for ax, (scene, key, ylabel, pairs) in zip(axes, panels):
+        show_it = len({a["iterations"] for a, _ in pairs}) > 1
+        for a, c in pairs:
+            if a[f"{key}_mean"] is None or c[f"{key}_mean"] is None:
+                continue
+            colour, _ = styles[a["method"]]
+            ax.annotate("", (c["n_gaussians_mean"], c[f"{key}_mean"]), (a["n_gaussians_mean"], a[f"{key}_mean"]),
+                        arrowprops={"arrowstyle": "->", "color": colour, "lw": 1.2})
+            _plot_cell(ax, a, "n_gaussians", key, styles, show_it)
+            _plot_cell(ax, c, "n_gaussians", key, styles, show_it)
+        ax.set_title(scene)
+        ax.set_xlabel("Gaussians")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        _legend(ax, styles, [m["method"] for pair in pairs for m in pair])
+    _save(plt, fig, path, "Compaction: each method (filled) → compacted (hollow), mean ± std over seeds")
     return True
 
 
@@ -693,6 +785,7 @@ def write_report(results: Path, out: Path, crop_px: int = 24, crop_scale: int = 
          lambda p: plot_quality_vs_time(aggs, "masked_psnr", p, "masked PSNR (dB)", styles), "no scene has object masks"),
         ("psnr_vs_gaussians.png", lambda p: plot_psnr_vs_gaussians(aggs, p, styles), "no finished cell"),
         ("recall.png", lambda p: plot_recall(aggs, p, styles), "no scene has recall"),
+        ("compaction.png", lambda p: plot_compaction(aggs, p, styles), "no method was run with and without +compact"),
     ]
     for name, draw, why_not in charts:
         if draw(out / name):

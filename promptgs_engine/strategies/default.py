@@ -11,7 +11,7 @@ is harmless should a later gsplat fix the expression.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from gsplat.strategy import DefaultStrategy
@@ -71,6 +71,9 @@ class ResettingDefaultStrategy(DefaultStrategy):
 
     budget: int | None = None
     auto_budget: bool = False
+    # The ledger (``state["ledger"]``, in train.json as "growth"): how many Gaussians each
+    # refinement grew and pruned. PromptGS keeps a finer one of its own.
+    keeps_default_ledger: ClassVar[bool] = True
     auto_budget_elasticity: float = 0.1
     loss_probe: Any = None  # callable() -> float, needed by auto_budget
 
@@ -129,6 +132,12 @@ class ResettingDefaultStrategy(DefaultStrategy):
                 ab["frozen_at"] = n
         ab["last_reset"] = {"step": step, "loss": loss, "n": n}
 
+    def _prune_gs(self, params, optimizers, state, step) -> int:
+        n_prune = super()._prune_gs(params, optimizers, state, step)
+        if self.keeps_default_ledger:
+            state.setdefault("ledger", new_default_ledger())["pruned"] += n_prune
+        return n_prune
+
     def _grow_gs(self, params, optimizers, state, step) -> tuple[int, int]:
         grads = state["grad2d"] / state["count"].clamp_min(1)
         grow = self.growth_candidates(params, state, grads, step)
@@ -141,7 +150,15 @@ class ResettingDefaultStrategy(DefaultStrategy):
                 if room > 0:
                     keep[priority.topk(room).indices] = True
                 grow = grow & keep
+        if self.keeps_default_ledger:
+            ledger = state.setdefault("ledger", new_default_ledger())
+            ledger["grown"] += int(grow.sum())
+            ledger["refinements"].append({"step": int(step), "n": int(params["means"].shape[0]), "grown": int(grow.sum())})
         return grow_selected(params, optimizers, state, grow, self.grow_scale3d, self.revised_opacity)
+
+
+def new_default_ledger() -> dict[str, Any]:
+    return {"grown": 0, "pruned": 0, "refinements": []}
 
 
 def grow_selected(params, optimizers, state, grow: torch.Tensor, grow_scale3d: float, revised_opacity: bool = False) -> tuple[int, int]:

@@ -4,36 +4,49 @@ protection of young Gaussians in prompts, and attention-guided resampling.
 Outside the prompt boxes it behaves as the 3DGS strategy (gsplat's DefaultStrategy, with
 the opacity reset applied). Inside them:
 
-* **Score.** Each Gaussian accumulates, over the views that see it,
-  ``S_g = Σ_i P^i · F(∇_g + d_g^i + o_g + s_g + r_g)`` (paper Eq. 2), where
+* **Score.** Each Gaussian accumulates, over the views that see it since the last
+  refinement, ``S_g = Σ_i P^i · F(∇_g + d_g^i + o_g + s_g + r_g)`` (paper Eq. 2), where
   ``P^i = λ1·L1 + λ2·D-SSIM + λ3·L_edge`` is view i's loss (Eq. 3) and the terms are
   normalised so that 1 means "at the densification threshold":
   ``∇_g`` = view-space gradient / grow_grad2d, ``d_g^i`` = 1 / (1 + depth / scene_scale)
   (near Gaussians count more), ``o_g`` = opacity, ``s_g`` = largest scale /
   (grow_scale3d · scene_scale), ``r_g`` = screen radius / (grow_scale2d · image size);
   each term is clamped to [0, 4] and ``F(x) = log(1 + x)`` keeps one huge term from
-  dominating.
-* **Prioritised growth.** Inside prompts the gradient threshold is lowered to
-  ``prompt_grad_scale · grow_grad2d``; candidates are ranked by mean score per view
-  times ``1 + attention`` (the error field fused with the prompt weight), and the
-  highest grow first. Outside the prompts, growth is 3DGS's less what the prompts add:
-  the outside candidates (3DGS's threshold) grow by largest view-space gradient, fewer
-  by the number of Gaussians the prompts added beyond 3DGS's rule since the last
-  refinement (inside candidates below 3DGS's threshold, and resampled points), so the
-  prompts move Gaussians to where they point rather than add them. Crop steps (related views
-  rendered around a prompt) do not count towards growth outside the prompts: they show
-  the same background again and again at full resolution. A ``budget`` caps the
-  total, prompt candidates first.
-* **Growth statistics at full resolution.** Under progressive resolution, a whole-view
-  step below full size (``info["downscale"] > 1``) trains but adds nothing to the
-  growth statistics (view-space gradients, score): the trainer renders some steps at
-  full size while densification runs (`focus.PromptFocus.is_statistics_step`), and
-  growth follows their gradients, as 3DGS's does. Low-resolution gradients grew about
-  twice the 3DGS count on the mountain dataset; a fixed 1/√f weight fitted it but
-  starved the real scenes (measurements in docs/promptgs.md).
-* **Protection.** Gaussians born inside a prompt (by growth or resampling) are not
+  dominating (`score_terms`). Growth ranks by the mean per view.
+* **Prioritised growth inside the prompts** (`prompt_growth`). At each refinement a quota
+  of the prompts' Gaussians grows, and the score distribution sets it: the number whose
+  score lies above Tukey's upper fence ``Q3 + 1.5 · IQR`` of the prompts' scores
+  (`prompt_quota`), the long tail of "abnormally high" scores that the paper's Fig. 2
+  shows densification bringing down. The quota goes to the highest priority, score ×
+  ``(1 + attention)`` (the error field fused with the prompt weight), among those whose
+  priority clears the same fence: the attention field decides where the quota goes. No
+  gradient threshold selects anything inside the prompts.
+* **Outside the prompts**, growth is 3DGS's rule (mean view-space gradient over 3DGS's
+  threshold), less what the prompts add beyond that rule: the prompts' growth over what
+  the rule would have grown inside them, and the Gaussians resampled since the last
+  refinement. The outside candidates with the smallest gradients give way, and what they
+  cannot offset is carried to the next refinement (``state["debt"]``): the prompts move
+  Gaussians to where they point rather than add them. A ``budget`` caps the total,
+  prompt Gaussians first.
+* **Growth statistics as 3DGS measures them.** A whole-view step below full size
+  (``info["downscale"] > 1``) trains but adds nothing to the statistics. Outside the
+  prompts only the trainer's statistics steps vote (``info["votes_outside"]``: whole
+  views at full size with 3DGS's 0.3 px² screen filter,
+  `focus.PromptFocus.is_statistics_step`): crops would densify the background of a
+  prompt over and over, and under PromptGS's narrow filter a flat surface drawn by
+  Gaussians smaller than a pixel shows gaps whose gradients grow it (a 64 px toy scene
+  grew 82k Gaussians against 3DGS's 65k that way). Low-resolution gradients grew about
+  twice the 3DGS count on the mountain (docs/promptgs.md).
+* **Resampled Gaussians earn their keep** (`idle_resampled`): one that is still under
+  ``carve_keep_opacity`` (0.05) a refinement interval after it came, and after the last
+  opacity reset, is removed at the next refinement, and its cost is paid back to the
+  debt. Carving adds up to a thousand points a round where the render is wrong; most land
+  on surfaces that the rest of the model fits soon after.
+* **Protection.** Other Gaussians born inside a prompt (by growth or resampling) are not
   pruned for ``protect_steps`` steps, so the first opacity prune does not remove an
   object before it has been seen from enough views.
+* **Ledger.** ``state["ledger"]`` (``train.json`` "growth") counts what grew inside and
+  outside, what resampling added and what was removed, per refinement.
 * **Resampling** (`carve_prompt`): inside a prompt box, candidate points on a voxel grid
   are projected into the box's most relevant views; a point is kept where the current
   render is wrong (high error at its pixel) in most of the views that see it — a
@@ -44,7 +57,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, ClassVar, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -64,28 +77,84 @@ LAMBDA_DSSIM = 0.2
 LAMBDA_EDGE = 0.5
 
 
+# Tukey's upper fence: scores above Q3 + TUKEY_K · IQR are the long tail that grows.
+TUKEY_K = 1.5
+
+
+def prompt_quota(scores: torch.Tensor) -> tuple[int, float]:
+    """How many Gaussians of the prompts grow at one refinement, from the distribution of
+    their scores (mean score per view since the last refinement): those above Tukey's
+    upper fence, ``Q3 + 1.5 · IQR``. The scores are long-tailed (the paper's Fig. 2); the
+    tail beyond the fence is the "abnormally high" part that densification should bring
+    down, and as it shrinks so does the quota. Returns ``(quota, fence)``."""
+    if scores.numel() == 0:
+        return 0, float("inf")
+    q1, q3 = torch.quantile(scores.double(), torch.tensor([0.25, 0.75], dtype=torch.float64)).tolist()
+    fence = q3 + TUKEY_K * (q3 - q1)
+    return int((scores > fence).sum()), float(fence)
+
+
+def score_terms(
+    params, info: dict[str, Any], scene_scale: float, grow_grad2d: float, grow_scale3d: float, grow_scale2d: float, absgrad: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The per-view part of the score, ``F(∇_g + d_g^i + o_g + s_g + r_g)`` of Eq. 2, for
+    every (view, Gaussian) pair the step rendered: ``(view index, Gaussian index, value)``.
+    Each term is normalised so that 1 means "at the densification threshold" and clamped
+    to [0, 4]; ``F = log1p``. Needs the step's ``means2d`` gradient."""
+    radii = info["radii"]  # [C, N, 2]
+    visible = (radii > 0).all(dim=-1)  # [C, N]
+    cam_ids, gs_ids = torch.where(visible)
+    if gs_ids.numel() == 0:
+        return cam_ids, gs_ids, torch.zeros(0, device=radii.device)
+    w, h = info["width"], info["height"]
+    grad = info["means2d"].absgrad if absgrad else info["means2d"].grad
+    grad = grad.clone()
+    grad[..., 0] *= w / 2.0 * info["n_cameras"]
+    grad[..., 1] *= h / 2.0 * info["n_cameras"]
+    g = (grad[cam_ids, gs_ids].norm(dim=-1) / grow_grad2d).clamp(0, 4)
+    depth = info["depths"][cam_ids, gs_ids]
+    d = 1.0 / (1.0 + depth.clamp_min(0) / scene_scale)
+    o = torch.sigmoid(params["opacities"][gs_ids])
+    s = (torch.exp(params["scales"][gs_ids]).max(dim=-1).values / (grow_scale3d * scene_scale)).clamp(0, 4)
+    r = (radii[cam_ids, gs_ids].max(dim=-1).values / (grow_scale2d * max(w, h))).clamp(0, 4)
+    return cam_ids, gs_ids, torch.log1p(g + d + o + s + r)
+
+
+def new_ledger() -> dict[str, Any]:
+    """Where a run's Gaussians come from and go (see `PromptGSStrategy`): totals, and one
+    entry per refinement."""
+    return {"grown_inside": 0, "grown_outside": 0, "resampled": 0, "resampled_removed": 0, "pruned_inside": 0,
+            "pruned_outside": 0, "refinements": []}
+
+
 @dataclass
 class PromptGSStrategy(ResettingDefaultStrategy):
     prompts: list = field(default_factory=list)  # list[PromptBox]
-    prompt_grad_scale: float = 0.25
     outside_offset: bool = True  # outside growth gives way to the prompts' extra growth
     protect_steps: int = 500
     carve_error_threshold: float = 0.08  # per-pixel error (mean abs, 0..1) that votes for resampling
     carve_max_candidates: int = 2_000_000  # grid points tried per box; beyond it the grid coarsens
+    carve_keep_opacity: float = 0.05  # a resampled Gaussian still fainter after a refinement interval is removed
     attention_fn: Any = None  # callable(points [N,3]) -> attention [N] in [0, 2], or None
+    keeps_default_ledger: ClassVar[bool] = False  # its own ledger: new_ledger()
 
     def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
         state = super().initialize_state(scene_scale)
         # score / error: sums over the views that saw each Gaussian; views: how many.
         # (gsplat's own `count` is zeroed at every refinement, these are not.)
-        state.update({"score": None, "error": None, "views": None, "born": None})
+        # carved: 1 for Gaussians that resampling added (and their grown copies).
+        state.update({"score": None, "error": None, "views": None, "born": None, "carved": None})
         # Gaussians resampled into the prompts since the last refinement.
         state["resampled"] = 0
+        # Prompt growth 3DGS's rule would not make, not yet offset by outside growth.
+        state["debt"] = 0
+        state["ledger"] = new_ledger()
         return state
 
     def record_resampled(self, state: dict[str, Any], n: int) -> None:
         """Count Gaussians added to the prompts by resampling (outside growth gives way)."""
         state["resampled"] = state.get("resampled", 0) + int(n)
+        state.setdefault("ledger", new_ledger())["resampled"] += int(n)
 
     def set_prompts(self, prompts: Sequence[PromptBox]) -> None:
         self.prompts = list(prompts)
@@ -103,18 +172,21 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         for key in ("score", "error", "views"):
             if state[key] is None:
                 state[key] = torch.zeros(n, device=device)
-        if state["born"] is None:
-            state["born"] = torch.zeros(n, device=device)
+        for key in ("born", "carved"):
+            if state.get(key) is None:
+                state[key] = torch.zeros(n, device=device)
 
     def _update_state(self, params, state, info, packed: bool = False) -> None:
         if info.get(STATISTICS_MERGED):  # a batched step added its views' statistics (batch.py)
             return
-        # A crop step renders the region around a prompt at full resolution, over and
-        # over: its view-space gradients must not drive growth of what lies outside the
-        # prompts (the terrain behind a drone group would be densified far beyond what
-        # 3DGS gives it). Outside the boxes, growth statistics come from whole views only.
+        # Outside the prompts, only the trainer's statistics steps (``votes_outside``:
+        # whole views at full size with 3DGS's screen filter) count towards growth. A crop
+        # step renders the region around a prompt at full resolution, over and over, and
+        # would densify the terrain behind a drone group far beyond what 3DGS gives it;
+        # under the narrow filter, flat surfaces show gaps whose gradients grow them.
         outside = saved = None
-        if info.get("crop_step") and state.get("grad2d") is not None:
+        votes_outside = info.get("votes_outside", not info.get("crop_step", False))
+        if not votes_outside and state.get("grad2d") is not None:
             outside = ~self.inside_prompts(params["means"])
             saved = state["grad2d"][outside].clone(), state["count"][outside].clone()
         if float(info.get("downscale", 1.0)) > 1.0:
@@ -131,28 +203,18 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         if "view_loss" not in info:
             return
         with torch.no_grad():
-            radii = info["radii"]  # [C, N, 2]
-            visible = (radii > 0).all(dim=-1)  # [C, N]
-            cam_ids, gs_ids = torch.where(visible)
+            cam_ids, gs_ids, value = score_terms(
+                params, info, state["scene_scale"], self.grow_grad2d, self.grow_scale3d, self.grow_scale2d, self.absgrad
+            )
             if gs_ids.numel() == 0:
                 return
-            w, h = info["width"], info["height"]
-            grad = info["means2d"].absgrad if self.absgrad else info["means2d"].grad
-            grad = grad.clone()
-            grad[..., 0] *= w / 2.0 * info["n_cameras"]
-            grad[..., 1] *= h / 2.0 * info["n_cameras"]
-            g = (grad[cam_ids, gs_ids].norm(dim=-1) / self.grow_grad2d).clamp(0, 4)
-            depth = info["depths"][cam_ids, gs_ids]
-            d = 1.0 / (1.0 + depth.clamp_min(0) / state["scene_scale"])
-            o = torch.sigmoid(params["opacities"][gs_ids])
-            s = (torch.exp(params["scales"][gs_ids]).max(dim=-1).values / (self.grow_scale3d * state["scene_scale"])).clamp(0, 4)
-            r = (radii[cam_ids, gs_ids].max(dim=-1).values / (self.grow_scale2d * max(w, h))).clamp(0, 4)
-            view_loss = info["view_loss"].to(g.device)[cam_ids]
-            state["score"].index_add_(0, gs_ids, view_loss * torch.log1p(g + d + o + s + r))
-            state["views"].index_add_(0, gs_ids, torch.ones_like(g))
+            view_loss = info["view_loss"].to(value.device)[cam_ids]
+            state["score"].index_add_(0, gs_ids, view_loss * value)
+            state["views"].index_add_(0, gs_ids, torch.ones_like(value))
             if "error_map" in info:
                 # Per-Gaussian error: the per-pixel loss under its projected centre.
                 emap = info["error_map"]  # [C, H, W]
+                w, h = info["width"], info["height"]
                 xy = info["means2d"][cam_ids, gs_ids].detach()
                 px = xy[:, 0].long().clamp(0, w - 1)
                 py = xy[:, 1].long().clamp(0, h - 1)
@@ -161,22 +223,33 @@ class PromptGSStrategy(ResettingDefaultStrategy):
     # -- growth -----------------------------------------------------------------------
 
     def growth_candidates(self, params, state, grads, step) -> torch.Tensor:
+        """3DGS's rule outside the prompts; inside them, the score quota (`prompt_quota`)
+        placed by priority (score × (1 + attention)). Outside growth then gives way to
+        what the prompts add beyond 3DGS's rule."""
         self._ensure_state(params, state)
         inside = self.inside_prompts(params["means"])
-        scale = self.prompt_grad_scale
-        if float(inside.float().mean()) > MAX_FOCUS_FRACTION:
-            # Prompts holding most of the scene focus nothing: a lowered threshold there
-            # would only grow the whole scene beyond 3DGS (2.2x on a box 10x the scene).
-            scale = 1.0
-        thr = torch.where(inside, torch.full_like(grads, self.grow_grad2d * scale), torch.full_like(grads, self.grow_grad2d))
-        candidates = grads > thr
-        outside = candidates & ~inside
+        rule = grads > self.grow_grad2d  # 3DGS's candidates, everywhere
+        ledger = state.setdefault("ledger", new_ledger())
+        focused = bool(inside.any()) and float(inside.float().mean()) <= MAX_FOCUS_FRACTION
+        if not focused:
+            # No prompt, or prompts holding most of the scene: they focus nothing, and a
+            # quota there would only grow the whole scene beyond 3DGS.
+            chosen_in = rule & inside
+            fence = None
+        else:
+            chosen_in, fence = self.prompt_growth(params, state, inside)
+        outside = rule & ~inside
         n_out = int(outside.sum())
-        # What the prompts add beyond 3DGS's rule: inside candidates under its
-        # threshold, and the Gaussians resampled since the last refinement.
-        extra = int((candidates & inside & (grads <= self.grow_grad2d)).sum()) + int(state.get("resampled", 0))
+        # What the prompts add beyond 3DGS's rule: inside growth over what the rule
+        # would have grown there, the Gaussians resampled since the last refinement, and
+        # what earlier refinements could not offset.
+        n_rule_in = int((rule & inside).sum())
+        resampled = int(state.get("resampled", 0))
         state["resampled"] = 0
+        extra = max(int(chosen_in.sum()) - n_rule_in, 0) + resampled + int(state.get("debt", 0))
         keep_out = max(n_out - extra, 0) if self.outside_offset else n_out
+        state["debt"] = max(extra - n_out, 0) if self.outside_offset else 0
+        kept = outside
         if keep_out < n_out:
             # 3DGS's own criterion decides which outside candidates grow: the largest
             # view-space gradients. (The prompt score favours near, large, opaque
@@ -184,23 +257,53 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             kept = torch.zeros_like(outside)
             if keep_out > 0:
                 kept[grads.masked_fill(~outside, float("-inf")).topk(keep_out).indices] = True
-            candidates = (candidates & inside) | kept
-        return candidates
+        ledger["refinements"].append({
+            "step": int(step), "n": int(params["means"].shape[0]), "inside": int(inside.sum()),
+            "rule_inside": n_rule_in, "grown_inside": int(chosen_in.sum()), "score_fence": fence,
+            "rule_outside": n_out, "grown_outside": int(kept.sum()), "resampled": resampled, "debt": int(state["debt"]),
+        })
+        ledger["grown_inside"] += int(chosen_in.sum())
+        ledger["grown_outside"] += int(kept.sum())
+        return chosen_in | kept
+
+    def prompt_growth(self, params, state, inside: torch.Tensor) -> tuple[torch.Tensor, float | None]:
+        """Which Gaussians inside the prompts grow: a quota set by the score distribution
+        (`prompt_quota`), given to the highest priority, score × (1 + attention), among
+        those whose priority clears the same fence. Returns the mask and the fence."""
+        chosen = torch.zeros_like(inside)
+        seen = inside & (state["views"] > 0)
+        if not bool(seen.any()):
+            return chosen, None
+        score = state["score"] / state["views"].clamp_min(1)
+        quota, fence = prompt_quota(score[seen])
+        if quota == 0:
+            return chosen, fence
+        priority = self.growth_priority(params, state, None, prompt_rank=True)
+        eligible = seen & (priority > fence)
+        take = min(quota, int(eligible.sum()))
+        if take > 0:
+            chosen[priority.masked_fill(~eligible, float("-inf")).topk(take).indices] = True
+        return chosen, fence
 
     def per_gaussian(self, params, state) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """Mean score and mean pixel error per view that saw each Gaussian."""
+        """Mean score and mean pixel error per view that saw each Gaussian (since the
+        last refinement; the statistics restart at every refinement, as 3DGS's do)."""
         if state.get("views") is None or state["views"].shape[0] != params["means"].shape[0]:
             return None, None
         views = state["views"].clamp_min(1)
         return state["score"] / views, state["error"] / views
 
-    def growth_priority(self, params, state, grads) -> torch.Tensor:
+    def growth_priority(self, params, state, grads, prompt_rank: bool = False) -> torch.Tensor:
+        """Mean score per view times ``1 + attention`` (the error field fused with the
+        prompt weight) inside the prompts. For the budget (``prompt_rank`` False), prompt
+        Gaussians rank above all others."""
         priority = state["score"] / state["views"].clamp_min(1)
         inside = self.inside_prompts(params["means"])
         if self.attention_fn is not None and bool(inside.any()):
             att = self.attention_fn(params["means"][inside].detach()).to(priority.device)
             priority[inside] = priority[inside] * (1.0 + att)
-        # Prompt candidates always rank above the rest.
+        if prompt_rank:
+            return priority
         return priority + inside.float() * (priority.abs().max() + 1.0)
 
     def _grow_gs(self, params, optimizers, state, step) -> tuple[int, int]:
@@ -209,8 +312,10 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         n_new = n_dupli + 2 * n_split
         if n_new:
             state["born"][-n_new:] = float(step)
-            for key in ("score", "error", "views"):
-                state[key][-n_new:] = 0.0
+        # The score restarts at every refinement, as gsplat's gradient statistics do: a
+        # Gaussian that grew is judged again on what it does next.
+        for key in ("score", "error", "views"):
+            state[key].zero_()
         assert params["means"].shape[0] == n_before + n_dupli + n_split
         return n_dupli, n_split
 
@@ -224,12 +329,35 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             is_too_big = torch.exp(params["scales"]).max(dim=-1).values > self.prune_scale3d * state["scene_scale"]
             is_prune = is_prune | is_too_big
         young = (step - state["born"]) < self.protect_steps
-        protected = young & self.inside_prompts(params["means"])
+        inside = self.inside_prompts(params["means"])
+        protected = young & inside
         is_prune = is_prune & ~protected
+        idle = self.idle_resampled(params, state, step)
+        is_prune = is_prune | idle
         n_prune = int(is_prune.sum())
+        ledger = state.setdefault("ledger", new_ledger())
+        n_idle = int(idle.sum())
+        ledger["resampled_removed"] += n_idle
+        # Removing what resampling added pays back what it cost.
+        state["debt"] = max(int(state.get("debt", 0)) - n_idle, 0)
+        n_in = int((is_prune & inside).sum())
+        ledger["pruned_inside"] += n_in
+        ledger["pruned_outside"] += n_prune - n_in
         if n_prune > 0:
             remove(params=params, optimizers=optimizers, state=state, mask=is_prune)
         return n_prune
+
+    def idle_resampled(self, params, state, step: int) -> torch.Tensor:
+        """bool [N]: resampled Gaussians that have not earned their keep: a refinement
+        interval after they were added (and after the last opacity reset, which clamps
+        every opacity), still under ``carve_keep_opacity``. Carving adds up to a thousand
+        points per round where the render is wrong, most of them on surfaces the rest of
+        the model fits soon after; those fade, and would otherwise stay to the end."""
+        if step % self.reset_every < self.refine_every:
+            return torch.zeros(params["means"].shape[0], dtype=torch.bool, device=params["means"].device)
+        aged = (step - state["born"]) >= self.refine_every
+        faint = torch.sigmoid(params["opacities"].flatten()) < self.carve_keep_opacity
+        return (state["carved"] > 0) & aged & faint
 
 
 # -- resampling ---------------------------------------------------------------------------
@@ -392,6 +520,6 @@ def append_gaussians(
     _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers)
     for key, value in state.items():
         if isinstance(value, torch.Tensor):
-            fill = float(step) if key == "born" else 0.0
+            fill = float(step) if key == "born" else 1.0 if key == "carved" else 0.0
             state[key] = torch.cat([value, torch.full((m, *value.shape[1:]), fill, device=value.device, dtype=value.dtype)])
     return m

@@ -19,6 +19,7 @@ import numpy as np
 from ..errors import DatasetError
 from . import scene_record
 from .blender import BlenderFailed, run_generator
+from .presets import GROUND_DETAIL
 
 FORMAT = "promptgs-synthetic-mountain/1"
 
@@ -37,7 +38,8 @@ def check_output_folder(out: Path, params: dict[str, Any]) -> bool:
             stored = json.loads(scene_json.read_text())
         except (OSError, ValueError) as exc:
             raise DatasetError(f"{scene_json}: unreadable ({exc}); choose another --out") from exc
-        if _normalised(stored.get("parameters", {})) == _normalised(params):
+        # A dataset from before the ground-detail settings has their defaults.
+        if _normalised({**GROUND_DETAIL, **stored.get("parameters", {})}) == _normalised(params):
             return True
         raise DatasetError(
             f"{out}: already holds a different dataset (preset {stored.get('parameters', {}).get('preset')}, "

@@ -35,6 +35,23 @@ COMMON: dict[str, Any] = {
     "max_bounces": 4,
 }
 
+# Ground detail, the mountain's values (the `sparse` preset lowers them). A dataset made
+# before these settings existed has exactly these.
+GROUND_DETAIL: dict[str, Any] = {
+    "ridge_octaves": 6,  # octaves of the ridged noise of the peaks
+    "ridge_amplitude": 1.0,  # scale of the ridges
+    "hill_octaves": 4,  # octaves of the rolling noise of the valley floor
+    "colour_jitter": 0.2,  # per-vertex brightness variation of the ground colour (±)
+    "texture_strength": 1.0,  # fine procedural colour variation and bump of the ground material
+}
+COMMON.update(GROUND_DETAIL)
+
+# 40 views on two rings around the valley (`small` and `sparse`).
+TWO_RINGS_40_VIEWS = [
+    {"count": 24, "radius": 46.0, "altitude": 5.0, "arc_deg": 360.0, "start_deg": 0.0},
+    {"count": 16, "radius": 34.0, "altitude": 14.0, "arc_deg": 360.0, "start_deg": 11.25},
+]
+
 PRESETS: dict[str, dict[str, Any]] = {
     "tiny": {
         "width": 480,
@@ -52,13 +69,30 @@ PRESETS: dict[str, dict[str, Any]] = {
         "height": 270,
         "samples": 16,
         "terrain_resolution": 256,
-        "camera_rings": [
-            {"count": 24, "radius": 46.0, "altitude": 5.0, "arc_deg": 360.0, "start_deg": 0.0},
-            {"count": 16, "radius": 34.0, "altitude": 14.0, "arc_deg": 360.0, "start_deg": 11.25},
-        ],
+        "camera_rings": TWO_RINGS_40_VIEWS,
         "n_flames": 2,
         "n_drones": 16,
         "n_drone_groups": 3,
+        "min_views": 8,
+    },
+    # A sparser, smoother valley: gentle hills without snow, little fine texture, fewer
+    # drones; 3DGS needs few Gaussians here, so what PromptGS adds shows (docs/dataset.md).
+    "sparse": {
+        "width": 320,
+        "height": 240,
+        "samples": 32,
+        "terrain_resolution": 128,
+        "rim_height": 18.0,
+        "snow_line": 1000.0,
+        "ridge_octaves": 3,
+        "ridge_amplitude": 0.4,
+        "hill_octaves": 2,
+        "colour_jitter": 0.12,
+        "texture_strength": 0.8,
+        "camera_rings": TWO_RINGS_40_VIEWS,
+        "n_flames": 2,
+        "n_drones": 8,
+        "n_drone_groups": 2,
         "min_views": 8,
     },
     "paper": {
