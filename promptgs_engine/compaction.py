@@ -146,9 +146,11 @@ def compact(
 
 def compaction_step(trainer) -> int:
     """The step at which a run compacts: ``COMPACT_AT`` of the run (or
-    ``extra["compaction"]["at"]``, for experiments), never before densification stops."""
+    ``extra["compaction"]["at"]``, for experiments), never before densification stops.
+    Counted in steps (a step of a batched or distributed run trains several views)."""
     at = float(trainer.cfg.extra.get("compaction", {}).get("at", COMPACT_AT))
-    return max(trainer.schedule.refine_stop_iter, min(int(at * trainer.cfg.iterations), trainer.cfg.iterations - 1))
+    steps = trainer.total_steps
+    return max(trainer.schedule.refine_stop_iter, min(int(at * steps), steps - 1))
 
 
 def maybe_compact(trainer, step: int) -> dict[str, Any] | None:

@@ -201,17 +201,20 @@ def test_promptgs_trains_distributed_like_one_process(toy, tmp_path):
     prompts = str(toy / "prompts_2.json")
     # The job file's `nproc` starts the ranks, as the Blender add-on and the bench ask for them.
     job = tmp_path / "job.json"
-    # Proposed prompts too: every rank proposes from the same parameters, rank 0 writes them.
-    job.write_text(json.dumps({"strategy": "promptgs", "prompts": prompts, "budget": 3000, "nproc": 2, "propose_prompts": True}))
+    # Proposed prompts and compaction too: every rank proposes and measures importance from
+    # the same parameters; rank 0 writes the proposal file.
+    job.write_text(json.dumps({"strategy": "promptgs", "prompts": prompts, "budget": 3000, "nproc": 2, "propose_prompts": True,
+                                "compact": True}))
     out, dumps = tmp_path / "run", tmp_path / "ranks"
     common = [a for a in COMMON if a not in ("--budget", "16000")]
     proc = _launch([str(toy), "--out", str(out), "--job", str(job), *common], rank_params=dumps, nproc_flag=False)
     one = _train_in_process(_config(toy, tmp_path / "one", batch_size=2, strategy="promptgs", prompts=prompts, budget=3000,
-                                    propose_prompts=True))
+                                    propose_prompts=True, compact=True))
     stdout, stderr = proc.communicate(timeout=300)
     assert proc.returncode == 0, stderr[-2000:]
     assert "resampled" in (out / "train.log").read_text()
     assert "proposed prompts" in (out / "train.log").read_text()
+    assert json.loads((out / "train.json").read_text())["compaction"] is not None
     assert (out / "proposals.json").read_text() == (tmp_path / "one" / "proposals.json").read_text().replace(
         str(tmp_path / "one"), str(out))
     rank0, rank1 = torch.load(dumps / "rank0.pt"), torch.load(dumps / "rank1.pt")
