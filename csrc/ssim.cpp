@@ -59,10 +59,13 @@ PROMPTGS_CLONES void combine(const float* __restrict mx, const float* __restrict
         const float vx = sxx[e] - mux * mux, vy = syy[e] - muy * muy, cxy = sxy[e] - mux * muy;
         const float a1 = 2.f * mux * muy + kC1, a2 = 2.f * cxy + kC2;
         const float b1 = mux * mux + muy * muy + kC1, b2 = vx + vy + kC2;
+        // No division by a1 or a2: v / a2 is 0 / 0 where the covariance is exactly
+        // -C2 / 2 (it happened on a training crop), while a1 / (b1 b2) is finite.
+        const float inv_b = 1.f / (b1 * b2);
         const float d_b2 = -v / b2;
-        p0[e] = v * (2.f * muy / a1 - 2.f * muy / a2 - 2.f * mux / b1) - 2.f * mux * d_b2;
+        p0[e] = 2.f * muy * (a2 - a1) * inv_b - 2.f * mux * v / b1 - 2.f * mux * d_b2;
         p1[e] = d_b2;
-        p2[e] = 2.f * v / a2;
+        p2[e] = 2.f * a1 * inv_b;
     }
 }
 
