@@ -285,6 +285,9 @@ def test_bad_inputs_end_with_one_line(box_sfm, tmp_path, capsys):
     assert code == 2 and "holds no earlier sfm output" in _error_line(err)
     assert (busy / "notes.txt").read_text() == "mine"
 
+    code, _, err = _run_cli(["sfm", str(box_sfm / "colmap" / "frames"), "--out", str(tmp_path / "o5"), "--threads", "0"], capsys)
+    assert code == 2 and "--threads must be a positive whole number" in _error_line(err)
+
 
 def test_too_few_registered_says_how_many_and_what_to_try(box_sfm, tmp_path, capsys):
     """Six frames of the box and four unrelated noise images: 6 of 10 register, 0.9 asked."""
@@ -310,7 +313,10 @@ def test_too_few_registered_says_how_many_and_what_to_try(box_sfm, tmp_path, cap
 @pytest.fixture(scope="module")
 def tumbler_sfm(shared_data, tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("tumbler") / "sfm"
-    assert cli_main(["sfm", str(shared_data / "tumbler" / "images_4"), "--out", str(out), "--quiet", "--min-registered", "0.3"]) == 0
+    # One thread: the same model every run (with every core the camera centres' largest
+    # error moved between 3.4% and 6.2% of the extent over four runs, 12.8% under load).
+    assert cli_main(["sfm", str(shared_data / "tumbler" / "images_4"), "--out", str(out), "--quiet", "--min-registered", "0.3",
+                     "--threads", "1"]) == 0
     return out, json.loads((out / "sfm_summary.json").read_text())
 
 

@@ -62,6 +62,7 @@ def sfm_options_from_args(args: argparse.Namespace) -> SfmOptions:
         fps=args.fps,
         max_frames=args.max_frames,
         min_registered=args.min_registered,
+        num_threads=getattr(args, "sfm_threads", -1),
     )
 
 
@@ -77,6 +78,9 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("input", type=Path, help="a folder of photos, or a video file")
     p.add_argument("--out", type=Path, required=True, help="dataset folder to write (new, empty, or an earlier sfm output to resume)")
     add_sfm_options(p)
+    p.add_argument("--threads", dest="sfm_threads", type=int, default=-1,
+                   help="threads for features, matching and mapping (default: every core); with more than one, "
+                        "the order in which they finish changes the model slightly from run to run, with 1 it is the same")
     p.add_argument("--overwrite", action="store_true", help="start over: drop the features and matches kept in --out")
     p.add_argument("--events", action="store_true", help="JSON-lines events on stdout (for the Blender add-on), no progress bars")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -68,6 +68,8 @@ class SfmOptions:
     num_threads: int = -1  # -1: all cores
 
     def validate(self) -> None:
+        if isinstance(self.num_threads, bool) or not isinstance(self.num_threads, int) or not (self.num_threads == -1 or self.num_threads >= 1):
+            raise PromptGSError(f"--threads must be a positive whole number (or -1: every core), got {self.num_threads!r}")
         if self.camera_model not in CAMERA_MODELS:
             raise PromptGSError(f"camera model {self.camera_model!r} is not one of {', '.join(CAMERA_MODELS)}")
         if self.camera_mode not in ("auto", "single", "per-image"):
