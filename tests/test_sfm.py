@@ -321,15 +321,19 @@ def tumbler_sfm(shared_data, tmp_path_factory) -> tuple[Path, dict]:
 
 
 def test_tumbler_thumbnails_register_and_align(shared_data, tumbler_sfm):
-    """At 200x150 SIFT ties only part of tumbler's 77 photos together (docs/sfm.md:
-    38-40 register; the 90% asked for is not reached at this size). The cameras that do
-    register must match the given model's up to a similarity."""
+    """At 200x150 the thumbnail settings tie 57 of tumbler's 77 photos together (COLMAP's
+    defaults 21; the 90% asked for is not reached at this size, docs/sfm.md). The cameras
+    that register match the given model's up to a similarity: half within 2% of the
+    extent. The largest error, 58.jpg's, is where the given model gives that photo a focal
+    length 11% below the others' (529 px against a median of 593), which one shared
+    camera can't follow."""
     out, summary = tumbler_sfm
-    assert summary["images_given"] == 77 and summary["matcher"] == "exhaustive"
-    assert summary["images_registered"] >= 30
+    assert summary["images_given"] == 77 and summary["matcher"] == "exhaustive" and summary["thumbnail_settings"]
+    assert summary["images_registered"] >= 50
     report = compare_centres(camera_centres(out / "sparse" / "0"), camera_centres(shared_data / "tumbler" / "sparse" / "0"))
     assert report["common"] == summary["images_registered"]
-    assert report["median_error"] < 0.04 and report["max_error"] < 0.10, report
+    errors = np.array(list(report["per_image"].values()))
+    assert report["median_error"] < 0.025 and np.percentile(errors, 90) < 0.05 and report["max_error"] < 0.12, report
 
 
 def _subset_of_given_model(shared_data: Path, names: set[str], folder: Path) -> Path:
@@ -350,8 +354,8 @@ def _subset_of_given_model(shared_data: Path, names: set[str], folder: Path) -> 
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="not reached at 200x150: the thumbnails' model has about 730 SfM points against the given model's 6100 "
-    "on the same 38 photos, and 300 steps on it end 2.0 dB lower (27.47 vs 29.46 dB); docs/sfm.md",
+    reason="not reached at 200x150: 300 steps on the thumbnails' model end 0.50 dB below the same training on the "
+    "given model's 57 cameras (25.53 vs 26.04 dB); it has 1,828 SfM points against the given model's 8,116; docs/sfm.md",
 )
 def test_training_on_the_sfm_model_matches_the_given_model(shared_data, tumbler_sfm, tmp_path):
     """Same images, same steps: the PSNR on the held-out views is within 0.5 dB."""

@@ -44,11 +44,20 @@ CAMERA_MODELS = (
     "SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
     "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE", "THIN_PRISM_FISHEYE",
 )
-# Images whose longer side is below this get a lower SIFT peak threshold (0.002 instead
-# of 1/150): with COLMAP's default, a 200x150 thumbnail yields about 100 features and
-# only 21 of tumbler's 77 images register; with 0.002 about 330 and 38 (docs/sfm.md).
+# Thumbnails: images whose longer side (as features are found on them) is below
+# SMALL_IMAGE_PX. COLMAP's defaults suit images of a thousand pixels or more, with
+# thousands of features each; on a 200x150 thumbnail they are both too strict (a few
+# hundred features, so 30 2D-3D inliers to register an image is a tenth of them) and too
+# loose (a 4 px epipolar tolerance is 2% of the image), and they make few SfM points.
+# Measured on tumbler's 200x150 photos (docs/sfm.md): COLMAP's defaults register 21 of
+# 77; the lower peak threshold 38; all of the settings below 57 at the same camera
+# accuracy, and the two-view tracks raise the points from about 1,100 to 1,800.
 SMALL_IMAGE_PX = 400
-SMALL_IMAGE_PEAK_THRESHOLD = 0.002
+SMALL_IMAGE_PEAK_THRESHOLD = 0.002  # SIFT peak threshold (COLMAP: 1/150)
+SMALL_IMAGE_MAX_RATIO = 0.85  # Lowe's ratio test (COLMAP: 0.8)
+SMALL_IMAGE_RANSAC_PX = 1.5  # two-view geometry's RANSAC tolerance in pixels (COLMAP: 4)
+SMALL_IMAGE_MIN_POSE_INLIERS = 12  # 2D-3D inliers to register an image (COLMAP: 30)
+SMALL_IMAGE_MIN_POSE_INLIER_RATIO = 0.1  # and their fraction (COLMAP: 0.25)
 
 
 @dataclass
@@ -216,6 +225,12 @@ def _chunks(items: list, size: int) -> list[list]:
     return [items[i : i + size] for i in range(0, len(items), size)]
 
 
+def _thumbnails(longest: int, options: SfmOptions) -> bool:
+    """Whether features are found on images smaller than SMALL_IMAGE_PX (see above)."""
+    cap = options.max_image_size
+    return min(longest, cap or longest) < SMALL_IMAGE_PX
+
+
 def _extract(pycolmap, db: Path, image_dir: Path, names: list[str], options: SfmOptions, camera: str, longest: int, reporter: Reporter) -> int:
     """SIFT features of every image not yet in the database; returns how many were already there."""
     existing = 0
@@ -235,7 +250,7 @@ def _extract(pycolmap, db: Path, image_dir: Path, names: list[str], options: Sfm
     extraction.num_threads = options.num_threads
     extraction.sift.max_num_features = options.max_features
     cap = options.max_image_size
-    if min(longest, cap or longest) < SMALL_IMAGE_PX:
+    if _thumbnails(longest, options):
         extraction.sift.peak_threshold = SMALL_IMAGE_PEAK_THRESHOLD
     if cap is not None:
         extraction.max_image_size = cap
@@ -259,13 +274,17 @@ def _extract(pycolmap, db: Path, image_dir: Path, names: list[str], options: Sfm
     return existing
 
 
-def _match(pycolmap, db: Path, work: Path, names: list[str], matcher: str, options: SfmOptions, reporter: Reporter) -> tuple[int, int]:
+def _match(pycolmap, db: Path, work: Path, names: list[str], matcher: str, options: SfmOptions, thumbnails: bool, reporter: Reporter) -> tuple[int, int]:
     """Match the chosen pairs (pairs already matched are skipped by pycolmap); returns the
     pair count and how many of them were already matched."""
     n = len(names)
     pairs = exhaustive_pairs(n) if matcher == "exhaustive" else sequential_pairs(n, options.overlap)
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = options.num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    if thumbnails:
+        matching.sift.max_ratio = SMALL_IMAGE_MAX_RATIO
+        verification.ransac.max_error = SMALL_IMAGE_RANSAC_PX
     chunk = max(50, -(-len(pairs) // 50))
     pair_file = work / "pairs.txt"
     reused = _pairs_already_matched(pycolmap, db, names, pairs)
@@ -274,7 +293,8 @@ def _match(pycolmap, db: Path, work: Path, names: list[str], matcher: str, optio
         for part in _chunks(pairs, chunk):
             pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in part))
             pycolmap.match_image_pairs(
-                str(db), matching_options=matching, pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pair_file)), device=pycolmap.Device.cpu
+                str(db), matching_options=matching, pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pair_file)),
+                verification_options=verification, device=pycolmap.Device.cpu,
             )
             stage.advance(len(part))
     pair_file.unlink(missing_ok=True)
@@ -291,13 +311,17 @@ def _pairs_already_matched(pycolmap, db: Path, names: list[str], pairs: list[tup
         database.close()
 
 
-def _map(pycolmap, db: Path, image_dir: Path, models_dir: Path, n: int, options: SfmOptions, reporter: Reporter):
+def _map(pycolmap, db: Path, image_dir: Path, models_dir: Path, n: int, options: SfmOptions, thumbnails: bool, reporter: Reporter):
     """Incremental mapping; returns the largest model (most registered images) and the model count."""
     if models_dir.exists():
         shutil.rmtree(models_dir)
     models_dir.mkdir(parents=True)
     pipeline = pycolmap.IncrementalPipelineOptions()
     pipeline.num_threads = options.num_threads
+    if thumbnails:
+        pipeline.mapper.abs_pose_min_num_inliers = SMALL_IMAGE_MIN_POSE_INLIERS
+        pipeline.mapper.abs_pose_min_inlier_ratio = SMALL_IMAGE_MIN_POSE_INLIER_RATIO
+        pipeline.triangulation.ignore_two_view_tracks = False  # points seen by two images are kept too
     pipeline.random_seed = options.seed
     pycolmap.set_random_seed(options.seed)
     models = [0]
@@ -409,9 +433,10 @@ def run_sfm(
             stage_name = "features"
             reused = _extract(pycolmap, db, image_dir, names, options, camera, longest, reporter)
             stage_name = "matching"
-            n_pairs, pairs_reused = _match(pycolmap, db, work, names, matcher, options, reporter)
+            thumbnails = _thumbnails(longest, options)
+            n_pairs, pairs_reused = _match(pycolmap, db, work, names, matcher, options, thumbnails, reporter)
             stage_name = "mapping"
-            best, n_models, model_dir = _map(pycolmap, db, image_dir, work / "models", n, options, reporter)
+            best, n_models, model_dir = _map(pycolmap, db, image_dir, work / "models", n, options, thumbnails, reporter)
             summary = {
                 "status": "failed",
                 "input": str(input_path),
@@ -422,6 +447,7 @@ def run_sfm(
                 "camera_mode": camera,
                 "camera_model": options.camera_model,
                 "max_image_size": options.max_image_size,
+                "thumbnail_settings": thumbnails,
                 "features_reused": reused,
                 "pairs_reused": pairs_reused,
                 "models": n_models,
