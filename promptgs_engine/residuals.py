@@ -58,6 +58,7 @@ class ResidualSettings:
     threshold: float = 5.0  # strength of a candidate that seeds proposals (local-noise units)
     support_threshold: float = 3.0  # strength of a candidate that supports one
     min_contrast: float = 0.03  # R of a candidate (a one-pixel object of this contrast)
+    min_roundness: float = 0.5  # smaller / larger principal curvature of the residual blob
     max_candidates: int = 512  # per view, strongest first
 
 
@@ -172,6 +173,31 @@ def _local_mean(x: torch.Tensor, window: int) -> torch.Tensor:
     return box_rows(box_rows(x).transpose(0, 1)).transpose(0, 1).float()
 
 
+def _roundness(dog: torch.Tensor) -> torch.Tensor:
+    """Per pixel of a response [C, H, W]: the smaller over the larger absolute principal
+    curvature of the response along its own colour direction at the pixel (finite
+    differences over the 3 × 3 neighbourhood), 0 where the curvatures differ in sign.
+    A compact blob peaks like a dome (both curvatures alike, near 1); a line or an edge
+    like a ridge (one curvature near 0)."""
+    d = F.pad(dog[None], (1, 1, 1, 1), mode="replicate")[0]
+    c = d[:, 1:-1, 1:-1]
+    n = c / _norm(c).clamp_min(1e-12)[None]
+
+    def at(dy: int, dx: int) -> torch.Tensor:
+        h, w = c.shape[1:]
+        return (d[:, 1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] * n).sum(dim=0)
+
+    f0 = (c * n).sum(dim=0)
+    fxx = at(0, 1) - 2 * f0 + at(0, -1)
+    fyy = at(1, 0) - 2 * f0 + at(-1, 0)
+    fxy = (at(1, 1) - at(-1, 1) - at(1, -1) + at(-1, -1)) / 4
+    half_tr = (fxx + fyy) / 2
+    root = torch.sqrt(((fxx - fyy) / 2) ** 2 + fxy**2)
+    big, small = half_tr.abs() + root, half_tr.abs() - root
+    det = fxx * fyy - fxy**2
+    return torch.where(det > 0, small / big.clamp_min(1e-12), torch.zeros_like(det))
+
+
 def _as_chw(img: torch.Tensor) -> torch.Tensor:
     t = torch.as_tensor(img).detach().cpu().float()
     if t.dim() != 3 or t.shape[-1] not in (1, 3):
@@ -198,6 +224,7 @@ def residual_strength(image: torch.Tensor, render: torch.Tensor, settings: Resid
         own = _norm(dog_gt)
         maps = {
             "strength": s, "contrast": r, "scale": torch.full_like(s, sigma), "image_blob": own,
+            "roundness": _roundness(dog_gt - dog_ren),
             "image_has_it": (own >= _norm(dog_ren)).float(),
         }
         if not best:
@@ -224,6 +251,7 @@ def view_evidence(
     h, w = s.shape
     peak = F.max_pool2d(s[None, None], 5, stride=1, padding=2)[0, 0]
     keep = (s >= peak) & (s >= settings.support_threshold) & (r >= settings.min_contrast) & has_it
+    keep &= maps["roundness"] >= settings.min_roundness
     ys, xs = torch.nonzero(keep, as_tuple=True)
     order = torch.argsort(s[ys, xs], descending=True)[: settings.max_candidates]
     ys, xs = ys[order], xs[order]
