@@ -146,7 +146,7 @@ def test_a_thin_wire_in_front_of_the_ground_is_not_proposed_and_a_drone_next_to_
     # A line the render misses (a cable, a seam, a crack: the tumbler scene's wall seam)
     # gives blob responses all along it, and rays through different points of it meet at
     # points of the 3D line, in front of the surface. Its residual is a ridge, not a
-    # dome: the detector keeps only round blobs.
+    # dome: only compact blobs seed proposals.
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, wire=True))
     assert [p for p in result.proposals if p.confidence >= TRAIN_MIN_CONFIDENCE] == []
@@ -154,21 +154,28 @@ def test_a_thin_wire_in_front_of_the_ground_is_not_proposed_and_a_drone_next_to_
     confident = [p for p in both.proposals if p.confidence >= TRAIN_MIN_CONFIDENCE]
     assert len(confident) == 1 and np.linalg.norm(np.array(confident[0].point) - DRONE) < 0.03
     # Without the roundness test the wire is proposed: the check above is the test's.
-    loose = propose(cams, evidence_for(cams, wire=True, settings=ResidualSettings(min_roundness=0.0)))
+    loose = propose(cams, evidence_for(cams, wire=True, settings=ResidualSettings(min_roundness=0.0, max_extent=math.inf)))
     assert [p for p in loose.proposals if p.confidence >= TRAIN_MIN_CONFIDENCE] != []
 
 
-def test_a_round_blob_is_round_and_a_line_is_not():
+def test_a_compact_blob_passes_the_shape_test_and_a_line_does_not():
     from promptgs_engine.residuals import residual_strength
 
+    cfg = ResidualSettings()
     jj, ii = np.mgrid[0:H, 0:W]
-    blob = 0.9 * np.exp(-((ii - 40.3) ** 2 + (jj - 30.6) ** 2) / (2 * 0.8**2))
+    round_blob = 0.9 * np.exp(-((ii - 40.3) ** 2 + (jj - 30.6) ** 2) / (2 * 0.8**2))
+    # An oblique drone: twice as wide as high, still a few pixels across.
+    flat_blob = 0.9 * np.exp(-((ii - 90.6) ** 2 / (2 * 1.4**2) + (jj - 20.2) ** 2 / (2 * 0.7**2)))
     line = 0.9 * np.exp(-((jj - 0.3 * ii - 60.2) ** 2) / (2 * 0.6**2))
     base = torch.full((H, W, 3), 0.4)
-    maps = residual_strength(base + torch.tensor(blob + line, dtype=torch.float32)[..., None], base)
-    assert float(maps["roundness"][30, 40]) > ResidualSettings().min_roundness + 0.1
-    on_line = [(int(0.3 * x + 60.2), x) for x in range(80, 120, 7)]
-    assert max(float(maps["roundness"][y, x]) for y, x in on_line) < 0.3
+    maps = residual_strength(base + torch.tensor(round_blob + flat_blob + line, dtype=torch.float32)[..., None], base)
+
+    def compact(y, x):
+        return float(maps["roundness"][y, x]) >= cfg.min_roundness and float(maps["extent"][y, x]) <= cfg.max_extent
+
+    assert compact(30, 40) and compact(20, 90)
+    on_line = [(int(0.3 * x + 60.2), x) for x in range(70, 120, 7)]
+    assert not any(compact(y, x) for y, x in on_line)
 
 
 def test_a_moving_object_is_reported_not_boxed():
