@@ -20,7 +20,10 @@ view (all maps at one resolution):
 * **Candidates**: local maxima of ``S`` (5 × 5) with ``S ≥ support_threshold`` and
   ``R ≥ min_contrast``, where the *image* has the blob (its own difference-of-Gaussians
   magnitude at the pixel is at least the render's): a floater that the render draws and
-  the image lacks is not a missing object. Positions are refined to sub-pixel by the
+  the image lacks is not a missing object. Those of ``S ≥ threshold`` must also be
+  *compact* (`_shape`: ``roundness ≥ min_roundness`` and ``extent ≤ max_extent``): a
+  line the render misses (a seam, a cable) is a ridge, fires all along its length, and
+  its points triangulate across views like an object's. Positions are refined to sub-pixel by the
   ``R``-weighted centroid of the 3 × 3 neighbourhood. The strongest ``max_candidates``
   are kept. Candidates of ``S ≥ threshold`` seed proposals; the weaker ones can only
   support a proposal that strong candidates of other views seeded.
@@ -58,6 +61,8 @@ class ResidualSettings:
     threshold: float = 5.0  # strength of a candidate that seeds proposals (local-noise units)
     support_threshold: float = 3.0  # strength of a candidate that supports one
     min_contrast: float = 0.03  # R of a candidate (a one-pixel object of this contrast)
+    min_roundness: float = 0.1  # smaller / larger principal curvature of a seeding blob
+    max_extent: float = 0.3  # response 3σ + 1 px away along the blob's long axis / at its peak
     max_candidates: int = 512  # per view, strongest first
 
 
@@ -172,6 +177,52 @@ def _local_mean(x: torch.Tensor, window: int) -> torch.Tensor:
     return box_rows(box_rows(x).transpose(0, 1)).transpose(0, 1).float()
 
 
+def _shape(dog: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per pixel of a response [C, H, W] at DoG width ``sigma``: ``roundness``, the smaller
+    over the larger absolute principal curvature of the response along its own colour
+    direction at the pixel (3 × 3 finite differences; 0 where the curvatures differ in
+    sign), and ``extent``, the larger response (along the same colour direction) at the two
+    points ``3 sigma + 1`` pixels away along the direction of least curvature, over the
+    response at the pixel. A compact object peaks like a dome, or an elongated dome (an
+    oblique drone: roundness 0.1-0.5), and its response has faded at that distance; a
+    line or an edge is a ridge, whose response runs on along it (extent near 1)."""
+    d = F.pad(dog[None], (1, 1, 1, 1), mode="replicate")[0]
+    c = d[:, 1:-1, 1:-1]
+    h, w = c.shape[1:]
+    n = c / _norm(c).clamp_min(1e-12)[None]
+
+    def at(dy: int, dx: int) -> torch.Tensor:
+        return (d[:, 1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] * n).sum(dim=0)
+
+    f0 = (c * n).sum(dim=0)
+    fxx = at(0, 1) - 2 * f0 + at(0, -1)
+    fyy = at(1, 0) - 2 * f0 + at(-1, 0)
+    fxy = (at(1, 1) - at(-1, 1) - at(1, -1) + at(-1, -1)) / 4
+    half_tr = (fxx + fyy) / 2
+    root = torch.sqrt(((fxx - fyy) / 2) ** 2 + fxy**2)
+    big, small = half_tr.abs() + root, half_tr.abs() - root
+    det = fxx * fyy - fxy**2
+    roundness = torch.where(det > 0, small / big.clamp_min(1e-12), torch.zeros_like(det))
+    # Direction of least curvature: the eigenvector of the eigenvalue nearer zero.
+    lam = torch.where(half_tr >= 0, half_tr - root, half_tr + root)
+    ex, ey = fxy, lam - fxx
+    alt = (fxy.abs() < 1e-12) & ((lam - fxx).abs() < 1e-12)
+    ex, ey = torch.where(alt, lam - fyy, ex), torch.where(alt, fxy, ey)
+    norm = torch.sqrt(ex * ex + ey * ey).clamp_min(1e-12)
+    ex, ey = ex / norm, ey / norm
+    ex = torch.where(norm > 1e-12, ex, torch.ones_like(ex))
+    reach = 3.0 * sigma + 1.0
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+    far = torch.zeros_like(f0)
+    for sign in (1.0, -1.0):
+        gx = (xs + sign * reach * ex + 0.5) / w * 2 - 1
+        gy = (ys + sign * reach * ey + 0.5) / h * 2 - 1
+        grid = torch.stack([gx, gy], dim=-1)[None]
+        sampled = F.grid_sample(dog[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+        far = torch.maximum(far, (sampled * n).sum(dim=0))
+    return roundness, far / f0.clamp_min(1e-12)
+
+
 def _as_chw(img: torch.Tensor) -> torch.Tensor:
     t = torch.as_tensor(img).detach().cpu().float()
     if t.dim() != 3 or t.shape[-1] not in (1, 3):
@@ -182,7 +233,8 @@ def _as_chw(img: torch.Tensor) -> torch.Tensor:
 def residual_strength(image: torch.Tensor, render: torch.Tensor, settings: ResidualSettings = ResidualSettings()) -> dict[str, torch.Tensor]:
     """Per-pixel maps [H, W] of one view (``image`` and ``render`` [H, W, 3] in [0, 1]):
     ``strength`` (S), ``contrast`` (R of the residual), ``scale`` (the DoG centre width
-    that gave S), ``image_blob`` (R of the image itself, at that scale) and ``image_has_it``
+    that gave S), ``image_blob`` (R of the image itself, at that scale), ``roundness``
+    and ``extent`` (of the residual's response at that scale, `_shape`) and ``image_has_it``
     (the image's blob response at the pixel is at least the render's)."""
     gt, ren = _as_chw(image), _as_chw(render)
     if gt.shape != ren.shape:
@@ -198,6 +250,7 @@ def residual_strength(image: torch.Tensor, render: torch.Tensor, settings: Resid
         own = _norm(dog_gt)
         maps = {
             "strength": s, "contrast": r, "scale": torch.full_like(s, sigma), "image_blob": own,
+            **dict(zip(("roundness", "extent"), _shape(dog_gt - dog_ren, sigma))),
             "image_has_it": (own >= _norm(dog_ren)).float(),
         }
         if not best:
@@ -224,6 +277,8 @@ def view_evidence(
     h, w = s.shape
     peak = F.max_pool2d(s[None, None], 5, stride=1, padding=2)[0, 0]
     keep = (s >= peak) & (s >= settings.support_threshold) & (r >= settings.min_contrast) & has_it
+    compact = (maps["roundness"] >= settings.min_roundness) & (maps["extent"] <= settings.max_extent)
+    keep &= compact | (s < settings.threshold)  # only compact blobs seed
     ys, xs = torch.nonzero(keep, as_tuple=True)
     order = torch.argsort(s[ys, xs], descending=True)[: settings.max_candidates]
     ys, xs = ys[order], xs[order]
