@@ -30,7 +30,7 @@ from .distributed import RANK_PARAMS_ENV, Dist
 from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
-from .losses import ssim_map
+from .losses import photometric_maps
 from .metrics import mse_to_psnr
 from .render import render
 from .sky import sky_points
@@ -283,10 +283,7 @@ class Trainer:
     def image_loss(self, img: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(loss, L1 map, D-SSIM map) of renders [C, H, W, 3] against ground truth: the loss
         is (1 − λ)·L1 + λ·D-SSIM from per-pixel maps, which PromptGS reuses for its scores."""
-        l1_map = (img - gt).abs().mean(dim=-1)
-        dssim_map = (1.0 - ssim_map(img, gt)).mean(dim=-1)
-        loss = (1.0 - self.cfg.ssim_lambda) * l1_map.mean() + self.cfg.ssim_lambda * dssim_map.mean()
-        return loss, l1_map, dssim_map
+        return photometric_maps(img, gt, self.cfg.ssim_lambda)
 
     def train_step(self) -> StepResult:
         if self.batched is not None:
