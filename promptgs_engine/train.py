@@ -247,13 +247,12 @@ class Trainer:
         """Render cameras of one size in one call; returns (images [C,H,W,D], alphas, info).
         ``screen_filter`` (px²) defaults to the run's."""
         p = self.params
-        colors = torch.cat([p["sh0"], p["shN"]], dim=1)
         return render(
             p["means"],
             p["quats"],
             torch.exp(p["scales"]),
             torch.sigmoid(p["opacities"]),
-            colors,
+            p["sh0"],
             torch.stack([c.world_to_camera for c in cameras]).to(self.device),
             torch.stack([c.K for c in cameras]).to(self.device),
             cameras[0].width,
@@ -262,6 +261,7 @@ class Trainer:
             backend=self.backend,
             eps2d=self.screen_filter if screen_filter is None else screen_filter,
             rasterize_mode=self.cfg.rasterize_mode,
+            sh_rest=p["shN"],
             **kwargs,
         )
 
