@@ -25,6 +25,11 @@ def _f32(t: Tensor) -> Tensor:
     return t.detach().to(torch.float32).contiguous()
 
 
+def _stack(tensors: list[Tensor]) -> Tensor:
+    """``torch.stack``, without its copy for the one camera of a training step."""
+    return tensors[0].unsqueeze(0) if len(tensors) == 1 else torch.stack(tensors)
+
+
 class RasterizeCPU(torch.autograd.Function):
     """Composite C images from projected Gaussians.
 
@@ -67,7 +72,7 @@ class RasterizeCPU(torch.autograd.Function):
         ctx.has_bg = backgrounds is not None
         ctx.per_camera_opacity = per_camera_opacity
         ctx.save_for_backward(means2d)
-        return torch.stack(out_colors), torch.stack(out_alphas)
+        return _stack(out_colors), _stack(out_alphas)
 
     @staticmethod
     def backward(ctx: Any, grad_colors: Tensor, grad_alphas: Tensor):  # type: ignore[override]
@@ -91,13 +96,13 @@ class RasterizeCPU(torch.autograd.Function):
                 g_bg.append(((1.0 - alpha) * grad_colors[c]).sum(dim=(0, 1)))
         ctx.saved_per_camera = None
         if ctx.absgrad:
-            means2d.absgrad = torch.stack(g_abs).to(means2d.dtype)
+            means2d.absgrad = _stack(g_abs).to(means2d.dtype)
         grad_bg = torch.stack(g_bg) if g_bg else None
         dtype = means2d.dtype
         return (
-            torch.stack(g_m).to(dtype),
-            torch.stack(g_cn).to(dtype),
-            torch.stack(g_col).to(dtype),
+            _stack(g_m).to(dtype),
+            _stack(g_cn).to(dtype),
+            _stack(g_col).to(dtype),
             (torch.stack(g_op) if ctx.per_camera_opacity else torch.stack(g_op).sum(0)).to(dtype),
             None,
             None,
@@ -144,7 +149,7 @@ class ProjectCPU(torch.autograd.Function):
             _C.project_forward(*inputs, sh_degree, v, k, width, height, near_plane, far_plane, eps2d, rest)
             for v, k in cams
         ]
-        means2d, conics, depths, radii, colors = (torch.stack([o[j] for o in outs]) for j in range(5))
+        means2d, conics, depths, radii, colors = (_stack([o[j] for o in outs]) for j in range(5))
         ctx.inputs, ctx.cams, ctx.has_sh, ctx.rest = inputs, cams, sh is not None, rest
         ctx.rest_shape = None if sh_rest is None else sh_rest.shape
         ctx.args = (sh_degree, width, height, near_plane, far_plane, eps2d)
