@@ -291,14 +291,14 @@ class Trainer:
         step = self.step
         views = self.plan_step(step)
         cameras = [v.camera for v in views]
-        gt = torch.stack([v.gt for v in views]).to(self.device)
+        gt = (views[0].gt[None] if len(views) == 1 else torch.stack([v.gt for v in views])).to(self.device)
         # PromptGS's error field needs the rendered depth, on the steps that feed it.
         with_depth = self.focus is not None and self.focus.feeds_field(step)
         out, alpha, info = self.render_cameras(
             cameras, sh_degree=self.active_sh_degree(step), screen_filter=views[0].screen_filter, absgrad=self.absgrad,
             render_mode="RGB+ED" if with_depth else "RGB",
         )
-        img = out[..., :3]
+        img = out if out.shape[-1] == 3 else out[..., :3]  # a slice's backward would copy the gradient
         loss, l1_map, dssim_map = self.image_loss(img, gt)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
         loss.backward()
