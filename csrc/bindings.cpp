@@ -184,7 +184,8 @@ promptgs::Camera make_camera(const Tensor& viewmat, const Tensor& K, int64_t wid
 }
 
 promptgs::ProjectInputs make_project_inputs(const Tensor& means, const Tensor& quats, const Tensor& scales,
-                                            const Tensor& opacities, const Tensor& sh, int64_t sh_degree) {
+                                            const Tensor& opacities, const Tensor& sh, const Tensor& sh_rest,
+                                            int64_t sh_degree) {
     const int64_t N = means.size(0);
     check(means, "means", torch::kFloat32, {N, 3});
     check(quats, "quats", torch::kFloat32, {N, 4});
@@ -197,24 +198,31 @@ promptgs::ProjectInputs make_project_inputs(const Tensor& means, const Tensor& q
     in.opacities = opacities.data_ptr<float>();
     in.n = N;
     in.sh = nullptr;
+    in.sh_rest = nullptr;
     in.sh_k = 0;
     in.sh_degree = 0;
     if (sh.numel() > 0 || sh.dim() == 3) {
         TORCH_CHECK(sh_degree >= 0 && sh_degree <= 3, "sh_degree must be in 0..3, got ", sh_degree);
         check(sh, "sh", torch::kFloat32, {N, -1, 3});
-        TORCH_CHECK(sh.size(1) >= (sh_degree + 1) * (sh_degree + 1), "sh_degree ", sh_degree, " needs ",
-                    (sh_degree + 1) * (sh_degree + 1), " SH coefficients, got ", sh.size(1));
         in.sh = sh.data_ptr<float>();
         in.sh_k = static_cast<int>(sh.size(1));
         in.sh_degree = static_cast<int>(sh_degree);
+        if (sh_rest.numel() > 0) {  // sh holds the first coefficient, sh_rest the others
+            check(sh, "sh", torch::kFloat32, {N, 1, 3});
+            check(sh_rest, "sh_rest", torch::kFloat32, {N, -1, 3});
+            in.sh_rest = sh_rest.data_ptr<float>();
+            in.sh_k = static_cast<int>(1 + sh_rest.size(1));
+        }
+        TORCH_CHECK(in.sh_k >= (sh_degree + 1) * (sh_degree + 1), "sh_degree ", sh_degree, " needs ",
+                    (sh_degree + 1) * (sh_degree + 1), " SH coefficients, got ", in.sh_k);
     }
     return in;
 }
 
 std::vector<Tensor> project_fwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh,
                                 int64_t sh_degree, Tensor viewmat, Tensor K, int64_t width, int64_t height,
-                                double near_plane, double far_plane, double eps2d) {
-    promptgs::ProjectInputs in = make_project_inputs(means, quats, scales, opacities, sh, sh_degree);
+                                double near_plane, double far_plane, double eps2d, Tensor sh_rest) {
+    promptgs::ProjectInputs in = make_project_inputs(means, quats, scales, opacities, sh, sh_rest, sh_degree);
     promptgs::Camera cam = make_camera(viewmat, K, width, height, near_plane, far_plane, eps2d);
     const int64_t N = in.n;
     auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
@@ -235,8 +243,8 @@ std::vector<Tensor> project_fwd(Tensor means, Tensor quats, Tensor scales, Tenso
 std::vector<Tensor> project_bwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh,
                                 int64_t sh_degree, Tensor viewmat, Tensor K, int64_t width, int64_t height,
                                 double near_plane, double far_plane, double eps2d, Tensor radii, Tensor v_means2d,
-                                Tensor v_conics, Tensor v_depths, Tensor v_colors) {
-    promptgs::ProjectInputs in = make_project_inputs(means, quats, scales, opacities, sh, sh_degree);
+                                Tensor v_conics, Tensor v_depths, Tensor v_colors, Tensor sh_rest) {
+    promptgs::ProjectInputs in = make_project_inputs(means, quats, scales, opacities, sh, sh_rest, sh_degree);
     promptgs::Camera cam = make_camera(viewmat, K, width, height, near_plane, far_plane, eps2d);
     const int64_t N = in.n;
     check(radii, "radii", torch::kInt32, {N, 2});
@@ -249,17 +257,22 @@ std::vector<Tensor> project_bwd(Tensor means, Tensor quats, Tensor scales, Tenso
     Tensor v_means = torch::empty({N, 3}, f32);
     Tensor v_quats = torch::empty({N, 4}, f32);
     Tensor v_scales = torch::empty({N, 3}, f32);
-    Tensor v_sh = in.sh ? torch::empty({N, in.sh_k, 3}, f32) : torch::empty({0}, f32);
-    if (in.sh && !has_vc) v_sh.zero_();
+    Tensor v_sh = in.sh ? torch::empty({N, in.sh_rest ? 1 : in.sh_k, 3}, f32) : torch::empty({0}, f32);
+    Tensor v_sh_rest = in.sh_rest ? torch::empty({N, in.sh_k - 1, 3}, f32) : torch::empty({0}, f32);
+    if (in.sh && !has_vc) {
+        v_sh.zero_();
+        v_sh_rest.zero_();
+    }
     {
         pybind11::gil_scoped_release no_gil;
         promptgs::project_backward(in, cam, radii.data_ptr<int32_t>(), v_means2d.data_ptr<float>(),
                                    v_conics.data_ptr<float>(), v_depths.data_ptr<float>(),
                                    has_vc ? v_colors.data_ptr<float>() : nullptr, v_means.data_ptr<float>(),
                                    v_quats.data_ptr<float>(), v_scales.data_ptr<float>(),
-                                   has_vc ? v_sh.data_ptr<float>() : nullptr);
+                                   has_vc ? v_sh.data_ptr<float>() : nullptr,
+                                   has_vc && in.sh_rest ? v_sh_rest.data_ptr<float>() : nullptr);
     }
-    return {v_means, v_quats, v_scales, v_sh};
+    return {v_means, v_quats, v_scales, v_sh, v_sh_rest};
 }
 
 promptgs::SsimShape ssim_shape(const Tensor& img, const Tensor& ref, const Tensor& window) {
@@ -323,9 +336,11 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           "absgrad) -> [means2d Nx2, conics Nx3, colors NxD, opacities N, absgrad Nx2 or empty].");
     m.def("project_forward", &project_fwd,
           "EWA projection (+ SH colours) for one camera: (means, quats, scales, opacities, sh or empty, sh_degree, "
-          "viewmat, K, width, height, near, far, eps2d) -> [means2d, conics, depths, radii int32, colors or empty].");
+          "viewmat, K, width, height, near, far, eps2d, sh_rest or empty) -> [means2d, conics, depths, radii int32, "
+          "colors or empty]; with sh_rest [N,K-1,3], sh [N,1,3] holds only the first SH coefficient.");
     m.def("project_backward", &project_bwd,
-          "Gradients of project_forward's outputs -> [v_means, v_quats, v_scales, v_sh or empty].");
+          "Gradients of project_forward's outputs (its arguments, radii, v_means2d, v_conics, v_depths, v_colors, "
+          "sh_rest) -> [v_means, v_quats, v_scales, v_sh or empty, v_sh_rest or empty].");
     m.def("stage_times", &stage_times, pybind11::arg("reset") = false, pybind11::arg("cpu") = false,
           "Seconds spent in each stage of the C++ passes since the last reset, {stage: seconds}: wall time, or "
           "with cpu=True the CPU time of the calling thread (resetting clears both).");

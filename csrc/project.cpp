@@ -177,6 +177,13 @@ inline void camera_center(const Camera& cam, float c[3]) {
     for (int j = 0; j < 3; ++j) c[j] = -(cam.R[j] * cam.t[0] + cam.R[3 + j] * cam.t[1] + cam.R[6 + j] * cam.t[2]);
 }
 
+// The 3 values of SH coefficient k of Gaussian i in (sh, sh_rest) as ProjectInputs lays them out.
+template <typename T>
+inline T* sh_coef(T* sh, T* sh_rest, int sh_k, int64_t i, int k) {
+    if (!sh_rest) return sh + (i * sh_k + k) * 3;
+    return k == 0 ? sh + i * 3 : sh_rest + (i * (sh_k - 1) + k - 1) * 3;
+}
+
 }  // namespace
 
 void project_forward(const ProjectInputs& in, const Camera& cam, float* means2d, float* conics, float* depths,
@@ -226,7 +233,11 @@ void project_forward(const ProjectInputs& in, const Camera& cam, float* means2d,
             const float il = 1.f / std::max(len, 1e-12f);
             float B[16];
             sh_bases(in.sh_degree, d[0] * il, d[1] * il, d[2] * il, B);
-            const float* c = in.sh + i * in.sh_k * 3;
+            float c[48];
+            for (int k = 0; k < n_bases; ++k) {
+                const float* ck = sh_coef(in.sh, in.sh_rest, in.sh_k, i, k);
+                for (int ch = 0; ch < 3; ++ch) c[3 * k + ch] = ck[ch];
+            }
             for (int ch = 0; ch < 3; ++ch) {
                 float v = 0.5f;
                 for (int k = 0; k < n_bases; ++k) v += B[k] * c[3 * k + ch];
@@ -238,7 +249,7 @@ void project_forward(const ProjectInputs& in, const Camera& cam, float* means2d,
 
 void project_backward(const ProjectInputs& in, const Camera& cam, const int32_t* radii, const float* v_means2d,
                       const float* v_conics, const float* v_depths, const float* v_colors, float* v_means,
-                      float* v_quats, float* v_scales, float* v_sh) {
+                      float* v_quats, float* v_scales, float* v_sh, float* v_sh_rest) {
     StageTimer timer(kStageProjectBackward);
     float campos[3];
     camera_center(cam, campos);
@@ -253,13 +264,17 @@ void project_backward(const ProjectInputs& in, const Camera& cam, const int32_t*
         vs[0] = vs[1] = vs[2] = 0.f;
         // SH gradients are written once: zeros for culled Gaussians and unused coefficients
         const int sh_from = (radii[2 * i] > 0 && radii[2 * i + 1] > 0 && v_colors) ? n_bases : 0;
-        if (v_sh)
-            for (int k = sh_from * 3; k < in.sh_k * 3; ++k) v_sh[i * in.sh_k * 3 + k] = 0.f;
+        auto zero_sh = [&](int from, int to) {
+            for (int k = from; k < to; ++k) {
+                float* vk = sh_coef(v_sh, v_sh_rest, in.sh_k, i, k);
+                vk[0] = vk[1] = vk[2] = 0.f;
+            }
+        };
+        if (v_sh) zero_sh(sh_from, in.sh_k);
         if (radii[2 * i] <= 0 || radii[2 * i + 1] <= 0) continue;
         Proj p;
         if (!project_one(in, cam, i, p)) {  // cannot happen for a visible Gaussian; keep outputs defined
-            if (v_sh)
-                for (int k = 0; k < sh_from * 3; ++k) v_sh[i * in.sh_k * 3 + k] = 0.f;
+            if (v_sh) zero_sh(0, sh_from);
             continue;
         }
 
@@ -349,8 +364,11 @@ void project_backward(const ProjectInputs& in, const Camera& cam, const int32_t*
             const float u[3] = {d[0] * il, d[1] * il, d[2] * il};
             float B[16];
             sh_bases(in.sh_degree, u[0], u[1], u[2], B);
-            const float* c = in.sh + i * in.sh_k * 3;
-            float* vc = v_sh + i * in.sh_k * 3;
+            float c[48];
+            for (int k = 0; k < n_bases; ++k) {
+                const float* ck = sh_coef(in.sh, in.sh_rest, in.sh_k, i, k);
+                for (int ch = 0; ch < 3; ++ch) c[3 * k + ch] = ck[ch];
+            }
             float vrgb[3];
             for (int ch = 0; ch < 3; ++ch) {
                 float v = 0.5f;
@@ -360,8 +378,9 @@ void project_backward(const ProjectInputs& in, const Camera& cam, const int32_t*
             float vB[16];
             for (int k = 0; k < n_bases; ++k) {
                 vB[k] = 0.f;
+                float* vc = sh_coef(v_sh, v_sh_rest, in.sh_k, i, k);
                 for (int ch = 0; ch < 3; ++ch) {
-                    vc[3 * k + ch] = B[k] * vrgb[ch];
+                    vc[ch] = B[k] * vrgb[ch];
                     vB[k] += c[3 * k + ch] * vrgb[ch];
                 }
             }

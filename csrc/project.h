@@ -26,7 +26,8 @@ struct ProjectInputs {
     const float* quats;      // [N, 4] wxyz, any norm
     const float* scales;     // [N, 3]
     const float* opacities;  // [N]
-    const float* sh;         // [N, K, 3] or nullptr (no colour evaluation)
+    const float* sh;         // [N, K, 3] or nullptr (no colour evaluation); [N, 1, 3] with sh_rest
+    const float* sh_rest;    // [N, K - 1, 3]: coefficients 1.. kept apart from the first, or nullptr
     int64_t n;
     int sh_k;                // K, coefficients per Gaussian in sh
     int sh_degree;           // 0..3, uses (degree + 1)^2 of the K coefficients
@@ -37,10 +38,10 @@ void project_forward(const ProjectInputs& in, const Camera& cam, float* means2d,
                      int32_t* radii, float* colors);
 
 // Gradients of the projection outputs (v_colors may be nullptr) to means [N,3], quats [N,4],
-// scales [N,3] and, when sh is set, the SH coefficients [N,K,3]. Outputs are overwritten;
-// culled Gaussians get zeros.
+// scales [N,3] and, when sh is set, the SH coefficients [N,K,3] (with sh_rest: v_sh [N,1,3]
+// and v_sh_rest [N,K-1,3]). Outputs are overwritten; culled Gaussians get zeros.
 void project_backward(const ProjectInputs& in, const Camera& cam, const int32_t* radii, const float* v_means2d,
                       const float* v_conics, const float* v_depths, const float* v_colors, float* v_means,
-                      float* v_quats, float* v_scales, float* v_sh);
+                      float* v_quats, float* v_scales, float* v_sh, float* v_sh_rest);
 
 }  // namespace promptgs

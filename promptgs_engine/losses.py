@@ -17,6 +17,17 @@ def _gaussian_kernel(size: int, sigma: float, dtype, device) -> torch.Tensor:
     return k / k.sum()
 
 
+_WINDOWS: dict[torch.device, torch.Tensor] = {}
+
+
+def _ssim_window(device: torch.device) -> torch.Tensor:
+    """The fused SSIM's float32 window on ``device``, made once (five torch calls a step)."""
+    window = _WINDOWS.get(device)
+    if window is None:
+        window = _WINDOWS[device] = _gaussian_kernel(_SSIM_WINDOW, _SSIM_SIGMA, torch.float32, device)
+    return window
+
+
 def _blur(x: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
     """Separable Gaussian blur of [B, C, H, W] with zero padding ("same" size)."""
     c = x.shape[1]
@@ -58,7 +69,7 @@ class _FusedSSIM(torch.autograd.Function):
     def forward(ctx, img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         from . import _C
 
-        window = _gaussian_kernel(_SSIM_WINDOW, _SSIM_SIGMA, torch.float32, img.device)
+        window = _ssim_window(img.device)
         img_c, ref_c = img.detach().contiguous(), ref.detach().contiguous()
         ssim, partials = _C.ssim_forward(img_c, ref_c, window, img.requires_grad)
         ctx.save_for_backward(img_c, ref_c, partials, window)
@@ -70,6 +81,64 @@ class _FusedSSIM(torch.autograd.Function):
 
         img, ref, partials, window = ctx.saved_tensors
         return _C.ssim_backward(grad.contiguous(), partials, img, ref, window), None
+
+
+def photometric_maps(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2):
+    """The 3DGS loss (1 − λ)·L1 + λ·D-SSIM of ``img`` [B, H, W, C] against ``ref``, with its
+    per-pixel maps: (loss, L1 map [B, H, W], D-SSIM map [B, H, W]), both maps averaged over
+    the channels. The maps carry no gradient.
+
+    Where the fused SSIM applies, the loss is one autograd node whose backward is the fused
+    SSIM's plus the L1 term, computed with the very operations (and order) that autograd
+    applies to the torch expression ``photometric_maps_torch`` (the same values to the
+    last bit), without its two dozen separate nodes and image-sized temporaries."""
+    if _fused_ssim_applies(img, ref) and img.requires_grad:
+        return _FusedPhotometric.apply(img, ref, float(ssim_lambda))
+    return photometric_maps_torch(img, ref, ssim_lambda)
+
+
+def photometric_maps_torch(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2):
+    """``photometric_maps`` as torch expressions (the maps keep their graph)."""
+    l1_map = (img - ref).abs().mean(dim=-1)
+    dssim_map = (1.0 - ssim_map(img, ref)).mean(dim=-1)
+    loss = (1.0 - ssim_lambda) * l1_map.mean() + ssim_lambda * dssim_map.mean()
+    return loss, l1_map, dssim_map
+
+
+class _FusedPhotometric(torch.autograd.Function):
+    """``photometric_maps`` as one node; the gradient flows to ``img`` only."""
+
+    @staticmethod
+    def forward(ctx, img: torch.Tensor, ref: torch.Tensor, lam: float):  # type: ignore[override]
+        from . import _C
+
+        window = _ssim_window(img.device)
+        img_c, ref_c = img.detach().contiguous(), ref.detach().contiguous()
+        ssim, partials = _C.ssim_forward(img_c, ref_c, window, True)
+        diff = img_c - ref_c
+        l1_map = diff.abs().mean(dim=-1)
+        dssim_map = (1.0 - ssim).mean(dim=-1)
+        loss = (1.0 - lam) * l1_map.mean() + lam * dssim_map.mean()
+        ctx.save_for_backward(img_c, ref_c, partials, window, diff)
+        ctx.lam = lam
+        ctx.mark_non_differentiable(l1_map, dssim_map)
+        return loss, l1_map, dssim_map
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor, _g_l1: torch.Tensor, _g_dssim: torch.Tensor):  # type: ignore[override]
+        from . import _C
+
+        img, ref, partials, window, diff = ctx.saved_tensors
+        lam = ctx.lam
+        n = diff.numel() // diff.shape[-1]  # pixels of the maps
+        channels = diff.shape[-1]
+        # autograd of photometric_maps_torch, node by node: the scalar through MulBackward
+        # and the two MeanBackwards, then AbsBackward (sgn) and RSubBackward (negation)
+        g_l1 = grad * (1.0 - lam) / n / channels
+        g_ssim = -(grad * lam / n / channels)
+        grad_ssim = g_ssim.expand(diff.shape).contiguous()
+        grad_img = _C.ssim_backward(grad_ssim, partials, img, ref, window)
+        return grad_img.add_(g_l1 * diff.sgn()), None, None
 
 
 def ssim_map_torch(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:

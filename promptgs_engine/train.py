@@ -21,14 +21,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from .adam import fused_adam_step
 from .batch import BatchedSteps, adam_settings, scale_schedule, steps_for
 from .config import TrainConfig
 from .data import Camera, Scene, load_colmap_scene
+from .data.images import preload_images
 from .distributed import RANK_PARAMS_ENV, Dist
 from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
-from .losses import ssim_map
+from .losses import photometric_maps
 from .metrics import mse_to_psnr
 from .render import render
 from .sky import sky_points
@@ -87,6 +89,23 @@ def make_optimizers(params: torch.nn.ParameterDict, cfg: TrainConfig, extent: fl
     return optimizers
 
 
+def first_non_finite(params: torch.nn.ParameterDict | dict[str, torch.Tensor]) -> str | None:
+    """Name of the first parameter holding a NaN or an inf, or None.
+
+    A NaN or inf anywhere makes a parameter's sum non-finite: one sum per parameter and one
+    read of all of them (no mask as large as a parameter; 0.07 ms for six parameters of 9k
+    Gaussians against 0.16 ms for six reads). A sum that overflows from finite values is
+    confirmed elementwise."""
+    values = [v.detach() for v in params.values()]
+    sums = torch.stack([v.sum() for v in values])
+    if bool(torch.isfinite(sums).all()):
+        return None
+    for key, value, total in zip(params.keys(), values, sums):
+        if not bool(torch.isfinite(total)) and not bool(torch.isfinite(value).all()):
+            return key
+    return None
+
+
 def atomic_torch_save(obj: Any, path: Path) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(obj, tmp)
@@ -124,6 +143,7 @@ class Trainer:
         self.scene = scene if scene is not None else load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
         if not self.scene.train_cameras:
             raise PromptGSError(f"{cfg.dataset}: no training images")
+        self.preload_images()
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
         self.schedule = scale_schedule(DefaultSchedule.for_iterations(cfg.iterations), self.batch_size)
@@ -176,6 +196,14 @@ class Trainer:
             **self.cfg.extra.get("promptgs", {}),
         )
 
+    def preload_images(self) -> bool:
+        """Decode the training images at the training size before the first step, as
+        OpenSplat does, when the image cache holds them all (otherwise they load as needed):
+        the steps of the first pass over the views then do not wait for the decoder."""
+        cams = [c.downscaled(self.cfg.downscale) for c in self.scene.train_cameras]
+        items = [(c.image_path, c.downscale, c.width * c.height * 3) for c in cams]
+        return preload_images(items, threads=torch.get_num_threads())
+
     @property
     def absgrad(self) -> bool:
         return bool(getattr(self.strategy, "absgrad", False))
@@ -219,13 +247,12 @@ class Trainer:
         """Render cameras of one size in one call; returns (images [C,H,W,D], alphas, info).
         ``screen_filter`` (px²) defaults to the run's."""
         p = self.params
-        colors = torch.cat([p["sh0"], p["shN"]], dim=1)
         return render(
             p["means"],
             p["quats"],
             torch.exp(p["scales"]),
             torch.sigmoid(p["opacities"]),
-            colors,
+            p["sh0"],
             torch.stack([c.world_to_camera for c in cameras]).to(self.device),
             torch.stack([c.K for c in cameras]).to(self.device),
             cameras[0].width,
@@ -234,6 +261,7 @@ class Trainer:
             backend=self.backend,
             eps2d=self.screen_filter if screen_filter is None else screen_filter,
             rasterize_mode=self.cfg.rasterize_mode,
+            sh_rest=p["shN"],
             **kwargs,
         )
 
@@ -255,10 +283,7 @@ class Trainer:
     def image_loss(self, img: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(loss, L1 map, D-SSIM map) of renders [C, H, W, 3] against ground truth: the loss
         is (1 − λ)·L1 + λ·D-SSIM from per-pixel maps, which PromptGS reuses for its scores."""
-        l1_map = (img - gt).abs().mean(dim=-1)
-        dssim_map = (1.0 - ssim_map(img, gt)).mean(dim=-1)
-        loss = (1.0 - self.cfg.ssim_lambda) * l1_map.mean() + self.cfg.ssim_lambda * dssim_map.mean()
-        return loss, l1_map, dssim_map
+        return photometric_maps(img, gt, self.cfg.ssim_lambda)
 
     def train_step(self) -> StepResult:
         if self.batched is not None:
@@ -266,14 +291,14 @@ class Trainer:
         step = self.step
         views = self.plan_step(step)
         cameras = [v.camera for v in views]
-        gt = torch.stack([v.gt for v in views]).to(self.device)
+        gt = (views[0].gt[None] if len(views) == 1 else torch.stack([v.gt for v in views])).to(self.device)
         # PromptGS's error field needs the rendered depth, on the steps that feed it.
         with_depth = self.focus is not None and self.focus.feeds_field(step)
         out, alpha, info = self.render_cameras(
             cameras, sh_degree=self.active_sh_degree(step), screen_filter=views[0].screen_filter, absgrad=self.absgrad,
             render_mode="RGB+ED" if with_depth else "RGB",
         )
-        img = out[..., :3]
+        img = out if out.shape[-1] == 3 else out[..., :3]  # a slice's backward would copy the gradient
         loss, l1_map, dssim_map = self.image_loss(img, gt)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
         loss.backward()
@@ -293,9 +318,7 @@ class Trainer:
     def update(self, step: int, info: dict) -> None:
         """Apply the step's gradients, then the schedules, the strategy's refinement and
         PromptGS's bookkeeping."""
-        for opt in self.optimizers.values():
-            opt.step()
-            opt.zero_grad(set_to_none=True)
+        fused_adam_step(self.optimizers)
         for sched in self.schedulers:
             sched.step()
         self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, step, info, packed=False)
@@ -308,14 +331,11 @@ class Trainer:
         self.check_finite()
 
     def check_finite(self) -> None:
-        for key, value in self.params.items():
-            # A NaN or inf anywhere makes the sum non-finite: one reduction per parameter
-            # instead of a mask as large as the parameter (13 ms a step at 120k
-            # Gaussians). A sum that overflows from finite values is confirmed elementwise.
-            if not bool(torch.isfinite(value.detach().sum())) and not bool(torch.isfinite(value).all()):
-                raise TrainingError(
-                    f"step {self.step}: NaN/inf in parameter '{key}'; the last good checkpoint is kept in {self.out / CHECKPOINT}"
-                )
+        key = first_non_finite(self.params)
+        if key is not None:
+            raise TrainingError(
+                f"step {self.step}: NaN/inf in parameter '{key}'; the last good checkpoint is kept in {self.out / CHECKPOINT}"
+            )
 
     # -- files ------------------------------------------------------------------------
 

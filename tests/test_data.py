@@ -13,7 +13,7 @@ import torch
 from PIL import Image
 
 from promptgs_engine.data import Camera, Scene, load_colmap_scene
-from promptgs_engine.data.images import ImageCache
+from promptgs_engine.data.images import ImageCache, preload_images
 from promptgs_engine.errors import DatasetError
 
 
@@ -154,6 +154,20 @@ def test_image_cache_is_bounded(tumbler4: Scene) -> None:
     assert len(cache) == 2
     again = cache.get(cams[-1].image_path, 1)  # most recent one is still held
     assert again is cache.get(cams[-1].image_path, 1)
+
+
+def test_preload_decodes_every_image_once_when_all_fit(tumbler4: Scene, tmp_path: Path) -> None:
+    cams = tumbler4.train_cameras[:5]
+    items = [(c.image_path, 1, c.width * c.height * 3) for c in cams]
+    small = ImageCache(max_bytes=4 * items[0][2])
+    assert not preload_images(items, threads=2, cache=small) and len(small) == 0  # would not all fit
+    missing = items + [(tmp_path / "gone.jpg", 1, 10)]
+    cache = ImageCache()
+    assert not preload_images(missing, threads=2, cache=cache) and len(cache) == 0  # reported when needed
+    assert preload_images(items, threads=2, cache=cache) and len(cache) == 5
+    held = cache.get(cams[3].image_path, 1)
+    assert held is cache.get(cams[3].image_path, 1)  # served from the cache, not decoded again
+    assert np.array_equal(held, np.asarray(Image.open(cams[3].image_path).convert("RGB")))
 
 
 # ---------------------------------------------------------------- fern (text, SIMPLE_RADIAL)

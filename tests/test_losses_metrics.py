@@ -85,3 +85,27 @@ def test_fused_cpu_ssim_matches_torch_ssim_and_its_gradient():
         scale = b.grad.abs().max()
         assert scale > 0
         assert (a.grad.double() - b.grad).abs().max() < 2e-4 * scale
+
+
+def test_fused_photometric_loss_equals_the_torch_expression_bit_for_bit():
+    """The one-node loss gives the loss, both maps and the image gradient of the torch
+    expression to the last bit (so training results do not change), including pixels
+    where the render equals the reference (sgn 0)."""
+    g = torch.Generator().manual_seed(5)
+    img = torch.rand(2, 23, 37, 3, generator=g)
+    ref = torch.rand(2, 23, 37, 3, generator=g)
+    ref[0, :5] = img[0, :5]
+    for lam in (0.2, 0.37):
+        results = []
+        for fn in (losses.photometric_maps, losses.photometric_maps_torch):
+            x = img.clone().requires_grad_(True)
+            loss, l1_map, dssim_map = fn(x, ref, lam)
+            (loss * 1.7).backward()
+            results.append((loss.detach(), l1_map.detach(), dssim_map.detach(), x.grad))
+        fused, plain = results
+        assert losses._fused_ssim_applies(img, ref)
+        for a, b in zip(fused, plain):
+            assert a.shape == b.shape and torch.equal(a, b)
+    x = img.clone().requires_grad_(True)
+    _, l1_map, dssim_map = losses.photometric_maps(x, ref)
+    assert not l1_map.requires_grad and not dssim_map.requires_grad

@@ -103,6 +103,32 @@ def test_cpu_matches_reference_sh_two_cameras(sh_degree):
     assert cpu[2][4][:, (sh_degree + 1) ** 2 :].abs().max() == 0
 
 
+@pytest.mark.parametrize("sh_degree", [0, 1, 3])
+def test_sh_rest_apart_equals_the_concatenated_coefficients_bit_for_bit(sh_degree):
+    """render(colors=sh0, sh_rest=shN) is render(colors=cat([sh0, shN])): the same images and
+    the same gradients, with each part's gradient where the concatenation's would be."""
+    n, views = 120, cameras(2, dtype=torch.float32)
+    geometry = [t.float() for t in make_scene(n, seed=7)]
+    coefs = torch.randn(n, 16, 3, generator=torch.Generator().manual_seed(4)) * 0.3
+    weights = torch.rand(2, H, W, 3, generator=torch.Generator().manual_seed(5))
+    outs = []
+    for apart in (False, True):
+        sh0 = coefs[:, :1].clone().requires_grad_(True)
+        shN = coefs[:, 1:].clone().requires_grad_(True)
+        means, quats, scales, opacities = (t.clone().requires_grad_(True) for t in geometry)
+        kwargs = {"sh_rest": shN} if apart else {}
+        img, alpha, _ = render(means, quats, scales, opacities, sh0 if apart else torch.cat([sh0, shN], 1), *views, W, H,
+                               sh_degree=sh_degree, backend="cpu", **kwargs)
+        ((img * weights).sum() + alpha.sum()).backward()
+        outs.append([img, alpha] + [t.grad for t in (means, quats, scales, sh0, shN)])
+    for a, b in zip(*outs):
+        assert torch.equal(a, b)
+    if sh_degree < 3:  # unused coefficients: no gradient
+        assert outs[1][6][:, (sh_degree + 1) ** 2 - 1 :].abs().max() == 0
+    if sh_degree:
+        assert outs[1][6].abs().max() > 0
+
+
 def test_cpu_matches_reference_with_a_narrow_screen_filter():
     n = 120
     colors = torch.rand(n, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)

@@ -60,3 +60,25 @@ def test_schedule_scales_with_run_length():
     short = DefaultSchedule.for_iterations(3000)
     assert short.refine_stop_iter == 1500 and short.reset_every == 300
     assert short.refine_start_iter < short.refine_stop_iter
+
+
+def test_grad2d_statistics_equal_gsplats_bit_for_bit():
+    """ResettingDefaultStrategy's masked accumulation against gsplat's gather/index_add_
+    version, over two cameras with Gaussians seen by one, both or none."""
+    n = 500
+    g = torch.Generator().manual_seed(3)
+    for absgrad in (False, True):
+        ours = make_default_strategy("absgs" if absgrad else "3dgs", DefaultSchedule.for_iterations(1000))
+        ref = DefaultStrategy(absgrad=absgrad)
+        params, _ = _setup(n)
+        s_ours, s_ref = ours.initialize_state(), ref.initialize_state()
+        for _ in range(3):
+            means2d = torch.zeros(2, n, 2, requires_grad=True)
+            means2d.grad = torch.randn(2, n, 2, generator=g) * 1e-3
+            means2d.absgrad = means2d.grad.abs() * 1.5
+            radii = (torch.rand(2, n, 2, generator=g) * 3).to(torch.int32)  # zeros: not visible
+            info = {"means2d": means2d, "radii": radii, "width": 64, "height": 48, "n_cameras": 2, "gaussian_ids": None}
+            ours._update_state(params, s_ours, info)
+            ref._update_state(params, s_ref, info)
+        assert s_ours["count"].max() >= 2 and (s_ours["count"] == 0).any()
+        assert torch.equal(s_ours["grad2d"], s_ref["grad2d"]) and torch.equal(s_ours["count"], s_ref["count"])

@@ -177,3 +177,48 @@ def test_events_report_errors_as_an_event_and_exit_code(tmp_path):
     )
     assert proc.returncode == 2
     assert "nowhere" in proc.stderr
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+def test_first_non_finite_finds_one_bad_value_anywhere_and_ignores_large_finite_values(bad):
+    from promptgs_engine.train import first_non_finite
+
+    params = {"means": torch.randn(1000, 3), "scales": torch.full((1001, 3), 3e38), "opacities": torch.randn(37)}
+    assert first_non_finite(params) is None  # sums of the scales overflow; the values are finite
+    for key in params:
+        for index in (0, params[key].numel() // 2, params[key].numel() - 1):  # vector body and tail
+            poisoned = {k: v.clone() for k, v in params.items()}
+            poisoned[key].view(-1)[index] = bad
+            assert first_non_finite(poisoned) == key
+
+
+def test_fused_adam_step_equals_the_optimisers_own_step_bit_for_bit():
+    from promptgs_engine.adam import fused_adam_step
+    from promptgs_engine.gaussians import init_from_points
+    from promptgs_engine.train import make_optimizers
+
+    g = torch.Generator().manual_seed(1)
+    runs = []
+    for direct in (False, True):
+        points = torch.randn(300, 6, generator=torch.Generator().manual_seed(0))
+        params = init_from_points(points[:, :3], points[:, 3:].sigmoid(), sh_degree=1, init_opacity=0.5)
+        opts = make_optimizers(params, TrainConfig(dataset="d", out="o"), extent=2.0)
+        g.manual_seed(1)
+        for step in range(4):
+            for p in params.values():
+                p.grad = torch.randn(p.shape, generator=g)
+            opts["means"].param_groups[0]["lr"] *= 0.9  # as the scheduler changes it
+            if direct:
+                fused_adam_step(opts)
+            else:
+                for opt in opts.values():
+                    opt.step()
+                    opt.zero_grad(set_to_none=True)
+        assert all(p.grad is None for p in params.values())
+        runs.append((params, opts))
+    (p_a, o_a), (p_b, o_b) = runs
+    for k in p_a:
+        assert torch.equal(p_a[k], p_b[k])
+        sa, sb = o_a[k].state[p_a[k]], o_b[k].state[p_b[k]]
+        assert sa.keys() == sb.keys() and all(torch.equal(sa[s], sb[s]) and sa[s].dtype == sb[s].dtype for s in sa)
+    assert float(o_b["means"].state[p_b["means"]]["step"]) == 4

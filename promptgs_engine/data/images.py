@@ -124,6 +124,25 @@ def set_image_cache_bytes(max_bytes: int) -> None:
     IMAGE_CACHE.set_max_bytes(max_bytes)
 
 
+def preload_images(items: list[tuple[Path, int, int]], threads: int = 1, cache: ImageCache | None = None) -> bool:
+    """Decode images into the cache before they are needed, ``threads`` at a time.
+
+    ``items`` are (path, downscale, decoded bytes). Nothing is read when they would not all
+    fit in the cache's free room, or when a file is missing (they then load as needed, and a
+    missing one is reported when a step needs it); returns whether they were read.
+    """
+    cache = IMAGE_CACHE if cache is None else cache
+    if sum(nbytes for _, _, nbytes in items) > cache.max_bytes - cache.nbytes:
+        return False
+    if not all(Path(path).is_file() for path, _, _ in items):
+        return False
+    from concurrent.futures import ThreadPoolExecutor  # PIL decodes without the GIL
+
+    with ThreadPoolExecutor(max(1, int(threads))) as pool:
+        list(pool.map(lambda item: cache.get(item[0], item[1]), items))
+    return True
+
+
 def load_image_tensor(path: Path, downscale: int, expected_size: tuple[int, int]) -> torch.Tensor:
     """[H, W, 3] float32 in [0, 1]; checks the decoded size is `expected_size` (W, H)."""
     arr = IMAGE_CACHE.get(path, downscale)

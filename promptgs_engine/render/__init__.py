@@ -58,6 +58,7 @@ def render(
     backend: str = "auto",
     eps2d: float = EPS2D,
     rasterize_mode: str = "classic",
+    sh_rest: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
     """Render N Gaussians into C pinhole cameras.
 
@@ -68,6 +69,10 @@ def render(
         render_mode "RGB" or "RGB+ED" (expected depth appended as the last channel).
         eps2d: the screen-space filter, a variance in pixels² added to every projected
         covariance (gsplat's ``eps2d``; 3DGS uses 0.3).
+        sh_rest: with ``sh_degree``, the SH coefficients after the first [N,K-1,3], ``colors``
+        then holding the first [N,1,3]: the same as ``colors=torch.cat([colors, sh_rest], 1)``,
+        which the CPU backend reads in place (no copy of the coefficients and of their
+        gradients each step).
         rasterize_mode: "classic" (3DGS) or "antialiased": opacities are scaled by
         ``filter_compensation`` so the filter keeps each Gaussian's energy (gsplat's mode
         of the same name).
@@ -84,6 +89,8 @@ def render(
     if rasterize_mode not in RASTERIZE_MODES:
         raise ValueError(f"unknown rasterize_mode {rasterize_mode!r}; choose one of {', '.join(RASTERIZE_MODES)}")
     name = resolve_backend(backend, means.device)
+    if sh_rest is not None and (name != "cpu" or sh_degree is None):
+        colors, sh_rest = torch.cat([colors, sh_rest], dim=1), None
     if name == "cuda":
         from .cuda import render_cuda
 
@@ -96,7 +103,7 @@ def render(
     return render_with(
         rasterize_cpu, means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane, backend_name="cpu", eps2d=eps2d,
-        rasterize_mode=rasterize_mode,
+        rasterize_mode=rasterize_mode, sh_rest=sh_rest,
     )
 
 
@@ -120,15 +127,24 @@ def render_with(
     backend_name: str,
     eps2d: float = EPS2D,
     rasterize_mode: str = "classic",
+    sh_rest: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, dict[str, Any]]:
-    """Projection + colour evaluation (C++ for the cpu backend, torch otherwise), then ``rasterize``."""
+    """Projection + colour evaluation (C++ for the cpu backend, torch otherwise), then ``rasterize``.
+    ``sh_rest`` as in ``render`` (cpu backend only; others get the coefficients concatenated)."""
     C = viewmats.shape[0]
     N = means.shape[0]
+    if sh_rest is not None and (backend_name != "cpu" or sh_degree is None):
+        colors, sh_rest = torch.cat([colors, sh_rest], dim=1), None
     if sh_degree is not None:
         if colors.dim() != 3 or colors.shape[0] != N or colors.shape[-1] != 3:
             raise ValueError(f"with sh_degree, colors must be [N, K, 3]; got {list(colors.shape)}")
-        if not 0 <= sh_degree <= 3 or colors.shape[1] < (sh_degree + 1) ** 2:
-            raise ValueError(f"sh_degree {sh_degree} needs 0..3 and {(sh_degree + 1) ** 2} coefficients, got {colors.shape[1]}")
+        if sh_rest is not None and (colors.shape[1] != 1 or sh_rest.dim() != 3 or sh_rest.shape[0] != N
+                                    or sh_rest.shape[-1] != 3):
+            raise ValueError(f"with sh_rest, colors must be [N, 1, 3] and sh_rest [N, K-1, 3]; got "
+                             f"{list(colors.shape)} and {list(sh_rest.shape)}")
+        n_coefs = colors.shape[1] + (sh_rest.shape[1] if sh_rest is not None else 0)
+        if not 0 <= sh_degree <= 3 or n_coefs < (sh_degree + 1) ** 2:
+            raise ValueError(f"sh_degree {sh_degree} needs 0..3 and {(sh_degree + 1) ** 2} coefficients, got {n_coefs}")
     elif colors.dim() != 2 or colors.shape[0] != N:
         raise ValueError(f"without sh_degree, colors must be [N, D]; got {list(colors.shape)}")
     if backend_name == "cpu":
@@ -137,7 +153,7 @@ def render_with(
 
         means2d, conics, depths, radii, sh_colors = project_cpu(
             means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane,
-            sh=colors if sh_degree is not None else None, sh_degree=sh_degree or 0, eps2d=eps2d,
+            sh=colors if sh_degree is not None else None, sh_degree=sh_degree or 0, eps2d=eps2d, sh_rest=sh_rest,
         )
     else:
         means2d, conics, depths, radii = project_gaussians(

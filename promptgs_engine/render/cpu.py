@@ -25,6 +25,11 @@ def _f32(t: Tensor) -> Tensor:
     return t.detach().to(torch.float32).contiguous()
 
 
+def _stack(tensors: list[Tensor]) -> Tensor:
+    """``torch.stack``, without its copy for the one camera of a training step."""
+    return tensors[0].unsqueeze(0) if len(tensors) == 1 else torch.stack(tensors)
+
+
 class RasterizeCPU(torch.autograd.Function):
     """Composite C images from projected Gaussians.
 
@@ -67,7 +72,7 @@ class RasterizeCPU(torch.autograd.Function):
         ctx.has_bg = backgrounds is not None
         ctx.per_camera_opacity = per_camera_opacity
         ctx.save_for_backward(means2d)
-        return torch.stack(out_colors), torch.stack(out_alphas)
+        return _stack(out_colors), _stack(out_alphas)
 
     @staticmethod
     def backward(ctx: Any, grad_colors: Tensor, grad_alphas: Tensor):  # type: ignore[override]
@@ -91,13 +96,13 @@ class RasterizeCPU(torch.autograd.Function):
                 g_bg.append(((1.0 - alpha) * grad_colors[c]).sum(dim=(0, 1)))
         ctx.saved_per_camera = None
         if ctx.absgrad:
-            means2d.absgrad = torch.stack(g_abs).to(means2d.dtype)
+            means2d.absgrad = _stack(g_abs).to(means2d.dtype)
         grad_bg = torch.stack(g_bg) if g_bg else None
         dtype = means2d.dtype
         return (
-            torch.stack(g_m).to(dtype),
-            torch.stack(g_cn).to(dtype),
-            torch.stack(g_col).to(dtype),
+            _stack(g_m).to(dtype),
+            _stack(g_cn).to(dtype),
+            _stack(g_col).to(dtype),
             (torch.stack(g_op) if ctx.per_camera_opacity else torch.stack(g_op).sum(0)).to(dtype),
             None,
             None,
@@ -111,10 +116,11 @@ class RasterizeCPU(torch.autograd.Function):
 class ProjectCPU(torch.autograd.Function):
     """EWA projection (and SH colours) in C++ for C cameras.
 
-    Inputs: means [N,3], quats [N,4], scales [N,3], opacities [N], sh [N,K,3] or None,
-    viewmats [C,4,4], Ks [C,3,3]. Outputs: means2d [C,N,2], conics [C,N,3], depths [C,N],
-    radii [C,N,2] int32 (no gradient), colors [C,N,3] (an empty tensor without SH).
-    Gradients flow to means, quats, scales and sh; opacities only set the radii.
+    Inputs: means [N,3], quats [N,4], scales [N,3], opacities [N], sh [N,K,3] or None (or
+    [N,1,3] with ``sh_rest`` [N,K-1,3], the other coefficients, read where they are instead of
+    concatenated), viewmats [C,4,4], Ks [C,3,3]. Outputs: means2d [C,N,2], conics [C,N,3],
+    depths [C,N], radii [C,N,2] int32 (no gradient), colors [C,N,3] (an empty tensor without
+    SH). Gradients flow to means, quats, scales, sh and sh_rest; opacities only set the radii.
     """
 
     @staticmethod
@@ -125,6 +131,7 @@ class ProjectCPU(torch.autograd.Function):
         scales: Tensor,
         opacities: Tensor,
         sh: Tensor | None,
+        sh_rest: Tensor | None,
         viewmats: Tensor,
         Ks: Tensor,
         width: int,
@@ -137,11 +144,14 @@ class ProjectCPU(torch.autograd.Function):
         _C = _ext()
         inputs = (_f32(means), _f32(quats), _f32(scales), _f32(opacities), _f32(sh) if sh is not None else torch.empty(0))
         cams = [(_f32(viewmats[c]), _f32(Ks[c])) for c in range(viewmats.shape[0])]
+        rest = _f32(sh_rest) if sh is not None and sh_rest is not None and sh_rest.numel() else torch.empty(0)
         outs = [
-            _C.project_forward(*inputs, sh_degree, v, k, width, height, near_plane, far_plane, eps2d) for v, k in cams
+            _C.project_forward(*inputs, sh_degree, v, k, width, height, near_plane, far_plane, eps2d, rest)
+            for v, k in cams
         ]
-        means2d, conics, depths, radii, colors = (torch.stack([o[j] for o in outs]) for j in range(5))
-        ctx.inputs, ctx.cams, ctx.has_sh = inputs, cams, sh is not None
+        means2d, conics, depths, radii, colors = (_stack([o[j] for o in outs]) for j in range(5))
+        ctx.inputs, ctx.cams, ctx.has_sh, ctx.rest = inputs, cams, sh is not None, rest
+        ctx.rest_shape = None if sh_rest is None else sh_rest.shape
         ctx.args = (sh_degree, width, height, near_plane, far_plane, eps2d)
         ctx.save_for_backward(radii)
         ctx.mark_non_differentiable(radii)
@@ -153,17 +163,20 @@ class ProjectCPU(torch.autograd.Function):
         (radii,) = ctx.saved_tensors
         _C = _ext()
         sh_degree, width, height, near_plane, far_plane, eps2d = ctx.args
-        totals: list[Tensor | None] = [None, None, None, None]
+        totals: list[Tensor | None] = [None] * 5
         for c, (v, k) in enumerate(ctx.cams):
             vc = _f32(v_colors[c]) if ctx.has_sh and v_colors is not None and v_colors.numel() else torch.empty(0)
             grads = _C.project_backward(
                 *ctx.inputs, sh_degree, v, k, width, height, near_plane, far_plane, eps2d, radii[c],
-                _f32(v_means2d[c]), _f32(v_conics[c]), _f32(v_depths[c]), vc,
+                _f32(v_means2d[c]), _f32(v_conics[c]), _f32(v_depths[c]), vc, ctx.rest,
             )
             totals = [g if t is None else t + g for t, g in zip(totals, grads)]
-        v_means, v_quats, v_scales, v_sh = (t.to(ctx.dtype) for t in totals)
-        ctx.inputs = ctx.cams = None
+        v_means, v_quats, v_scales, v_sh, v_rest = (t.to(ctx.dtype) for t in totals)
+        if ctx.rest_shape is not None and not ctx.rest.numel():  # no coefficients past the first
+            v_rest = torch.zeros(ctx.rest_shape, dtype=ctx.dtype)
+        ctx.inputs = ctx.cams = ctx.rest = None
         return (v_means, v_quats, v_scales, None, v_sh if ctx.has_sh else None,
+                v_rest if ctx.has_sh and ctx.rest_shape is not None else None,
                 None, None, None, None, None, None, None, None)
 
 
@@ -181,10 +194,13 @@ def project_cpu(
     sh: Tensor | None = None,
     sh_degree: int = 0,
     eps2d: float = EPS2D,
+    sh_rest: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
-    """C++ projection; returns means2d, conics, depths, radii and SH colours [C,N,3] (None without sh)."""
+    """C++ projection; returns means2d, conics, depths, radii and SH colours [C,N,3] (None without sh).
+    With ``sh_rest``, ``sh`` is the first SH coefficient [N,1,3] and ``sh_rest`` the others."""
     means2d, conics, depths, radii, colors = ProjectCPU.apply(
-        means, quats, scales, opacities, sh, viewmats, Ks, width, height, sh_degree, near_plane, far_plane, eps2d
+        means, quats, scales, opacities, sh, sh_rest, viewmats, Ks, width, height, sh_degree, near_plane, far_plane,
+        eps2d,
     )
     return means2d, conics, depths, radii, (colors if sh is not None else None)
 
