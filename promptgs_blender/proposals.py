@@ -27,7 +27,7 @@ import numpy as np
 from mathutils import Matrix, Vector
 
 from . import coords, display, preview, prompts
-from .trainer import TrainerError, TrainerRun, check_python, engine_command, exit_line
+from .trainer import TrainerRun, check_python, engine_command, exit_line, start_run
 
 PROPOSED = "PromptGS Proposed"
 MARKERS = "PromptGS Proposal Points"
@@ -99,11 +99,7 @@ def start(context, python: str, run_dir: Path, last_snapshot: str = "") -> Propo
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "proposals.json"
     argv = engine_command(python, "propose", str(run_dir), "--out", str(path), "--quiet", *extra)
-    run = TrainerRun(argv, folder / "propose_stderr.log", out=folder)
-    try:
-        run.start()
-    except TrainerError as exc:
-        raise ProposeError(str(exc)) from None
+    run = start_run(argv, folder / "propose_stderr.log", folder, ProposeError)
     state.propose_status = "RUNNING"
     state.propose_message = f"Proposing from {label} (every training view is rendered)…"
     _job = ProposeJob(run, path, label)
@@ -124,7 +120,7 @@ def drain(context) -> bool:
             state.propose_status, state.propose_message = "ERROR", str(exc)[:300]
     elif event is not None:
         state.propose_status, state.propose_message = "ERROR", exit_line(event, "promptgs propose")
-    if _job.run.finished and _job.run.events.empty():
+    if _job.run.done:
         _job = None
         return False
     return True

@@ -199,7 +199,7 @@ def drain_and_apply(context=None) -> bool:
                 load_result(context, Path(result), keep_scores=True)
             except (OSError, ValueError) as exc:
                 state.last_output = f"could not read result {result}: {exc}"
-        ended = _train.finished and _train.events.empty()
+        ended = _train.done
         if state.out_dir:  # proposals of `--propose-prompts`, when the run has written them
             proposals.follow_training(context, Path(state.out_dir), final=ended)
         if ended:
@@ -218,7 +218,7 @@ def drain_and_apply(context=None) -> bool:
                     state.dataset_message = (tail[-1] if tail else f"exit code {event.get('returncode')}")[:300]
                 else:
                     state.dataset_message = f"Dataset written to {_dataset_job.out}"
-        if _dataset_job.finished and _dataset_job.events.empty():
+        if _dataset_job.done:
             _dataset_job = None
         else:
             busy = True
