@@ -6,7 +6,7 @@ The add-on uses only bpy, mathutils, numpy and the standard library; the trainer
 import bpy, so the ``dataset`` subpackage can be used from the engine's command line.
 """
 
-_MODULES = ("props", "operators", "ui", "training")
+_MODULES = ("props", "operators", "ui", "training", "overlay")
 
 
 def _modules():

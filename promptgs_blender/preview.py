@@ -21,7 +21,7 @@ import bpy
 import numpy as np
 
 from . import coords, prompts
-from .trainer import TrainerError, TrainerRun, check_python, engine_command, exit_line
+from .trainer import TrainerRun, check_python, engine_command, exit_line, start_run
 
 PREVIEW = "PromptGS Preview"
 SIDE_BY_SIDE = "PromptGS Preview | Image"
@@ -104,11 +104,7 @@ def start(context, python: str, run_dir: Path, last_snapshot: str = "") -> Previ
         raise PreviewError(problem)
     argv = engine_command(python, "render", str(run_dir), "--camera-file", str(camera_file),
                           "--out", str(folder), "--quiet", *extra)
-    run = TrainerRun(argv, folder / "render_stderr.log", out=folder)
-    try:
-        run.start()
-    except TrainerError as exc:
-        raise PreviewError(str(exc)) from None
+    run = start_run(argv, folder / "render_stderr.log", folder, PreviewError)
     job = PreviewJob(run, folder / (Path(entry["name"]).stem + ".png"), camera.name)
     state.preview_status = "RUNNING"
     state.preview_message = f"Rendering {label} from '{camera.name}'…"
@@ -130,7 +126,7 @@ def drain(context) -> bool:
                                  f"{time.time() - _job.started:.1f} s")
     elif event is not None:
         state.preview_status, state.preview_message = "ERROR", exit_line(event, "render")
-    if _job.run.finished and _job.run.events.empty():
+    if _job.run.done:
         _job = None
         return False
     return True

@@ -1,13 +1,15 @@
 """*Propose Prompts*: boxes around small objects the run still misses, as prompt cubes in a
-"Proposed" state that the user accepts or deletes.
+"Proposed" state that the user accepts or deletes; also the proposals a training run makes
+itself (``propose_prompts``: ``RUN/proposals.json``, :func:`follow_training`).
 
 ``promptgs propose RUN --out RUN/propose/proposals.json`` runs in the background (the
 trainer's environment renders every training view and compares it with its photo; no
 torch in Blender), from the run's ``point_cloud.ply`` or, while it still trains, its
 newest snapshot. Each proposal becomes a CUBE empty in the "PromptGS Proposed"
-collection (inside "PromptGS Prompts", tagged orange in the Outliner), placed with
-:func:`coords.prompt_box_matrix` under the dataset root, and carries its confidence and
-how many views support it. Proposed cubes are not sent to the trainer: *Accept* moves one
+collection (inside "PromptGS Prompts", tagged orange in the Outliner, drawn orange in
+the viewport by ``overlay.py``), placed with :func:`coords.prompt_box_matrix` under the
+dataset root, and carries its confidence and how many views support it; a proposal whose
+centre an enabled prompt already holds is left out. Proposed cubes are not sent to the trainer: *Accept* moves one
 into the prompts (weight 1), the X deletes it; a cube can be moved or resized before it
 is accepted. Beside the loss field, "PromptGS Proposal Points" marks each proposal's
 centre, coloured by confidence.
@@ -22,10 +24,10 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from mathutils import Matrix
+from mathutils import Matrix, Vector
 
 from . import coords, display, preview, prompts
-from .trainer import TrainerError, TrainerRun, check_python, engine_command, exit_line
+from .trainer import TrainerRun, check_python, engine_command, exit_line, start_run
 
 PROPOSED = "PromptGS Proposed"
 MARKERS = "PromptGS Proposal Points"
@@ -34,6 +36,7 @@ COLOR = (1.0, 0.45, 0.05, 1.0)
 # The trainer's own threshold for adding proposals (promptgs_engine.propose.TRAIN_MIN_CONFIDENCE);
 # the panel counts the proposals above it.
 CONFIDENT = 0.3
+TRAINING_FILE = "proposals.json"  # what `promptgs train --propose-prompts` writes in its run folder
 
 
 @dataclass
@@ -45,6 +48,7 @@ class ProposeJob:
 
 
 _job: ProposeJob | None = None
+_training_file: tuple | None = None  # (path, mtime_ns, size) of the training proposal file last shown
 
 
 class ProposeError(Exception):
@@ -95,11 +99,7 @@ def start(context, python: str, run_dir: Path, last_snapshot: str = "") -> Propo
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "proposals.json"
     argv = engine_command(python, "propose", str(run_dir), "--out", str(path), "--quiet", *extra)
-    run = TrainerRun(argv, folder / "propose_stderr.log", out=folder)
-    try:
-        run.start()
-    except TrainerError as exc:
-        raise ProposeError(str(exc)) from None
+    run = start_run(argv, folder / "propose_stderr.log", folder, ProposeError)
     state.propose_status = "RUNNING"
     state.propose_message = f"Proposing from {label} (every training view is rendered)…"
     _job = ProposeJob(run, path, label)
@@ -115,16 +115,12 @@ def drain(context) -> bool:
     event = _job.run.exit_event()
     if event is not None and event.get("returncode") == 0 and _job.path.is_file():
         try:
-            cubes = show(context, read_file(_job.path))
-            confident = sum(float(c["promptgs_confidence"]) >= CONFIDENT for c in cubes)
-            state.propose_status = "DONE"
-            state.propose_message = (f"{len(cubes)} proposals from {_job.label}, {confident} of confidence "
-                                     f"≥ {CONFIDENT} ({time.time() - _job.started:.0f} s)")
+            present(context, read_file(_job.path), _job.label, f" ({time.time() - _job.started:.0f} s)")
         except ProposeError as exc:
             state.propose_status, state.propose_message = "ERROR", str(exc)[:300]
     elif event is not None:
         state.propose_status, state.propose_message = "ERROR", exit_line(event, "promptgs propose")
-    if _job.run.finished and _job.run.events.empty():
+    if _job.run.done:
         _job = None
         return False
     return True
@@ -132,6 +128,11 @@ def drain(context) -> bool:
 
 def read_file(path: Path) -> list[dict]:
     """The proposals of a proposal file (``promptgs-proposals/1``), most confident first."""
+    return load(path)[0]
+
+
+def load(path: Path) -> tuple[list[dict], dict]:
+    """(the proposals, most confident first; the whole file) of a proposal file."""
     try:
         data = json.loads(Path(path).read_text())
         entries = data["prompts"]
@@ -140,7 +141,64 @@ def read_file(path: Path) -> list[dict]:
             float(entry.get("confidence", 1.0))
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ProposeError(f"{path}: not a proposal file ({type(exc).__name__}: {exc})") from None
-    return sorted(entries, key=lambda e: -float(e.get("confidence", 1.0)))
+    return sorted(entries, key=lambda e: -float(e.get("confidence", 1.0))), data
+
+
+def inside_prompts(context, entries: list[dict]) -> list[bool]:
+    """For each entry, whether an enabled prompt cube already holds its centre (as the
+    trainer skips a proposal an existing prompt holds)."""
+    to_blender = prompts.dataset_matrix(context.scene.promptgs.root).inverted()
+    cubes = [(o.matrix_world.inverted(), o.empty_display_size) for o in prompts.prompt_objects(context.scene)
+             if o.promptgs_enabled]
+    held = []
+    for entry in entries:
+        centre = to_blender @ Vector(entry["center"])
+        held.append(any(max(abs(x) for x in inverse @ centre) <= size for inverse, size in cubes))
+    return held
+
+
+def present(context, entries: list[dict], label: str, note: str = "") -> list[bpy.types.Object]:
+    """Replace the proposed cubes with the entries no prompt holds yet; the panel says
+    how many came from ``label`` and how confident they are."""
+    state = context.window_manager.promptgs_run
+    held = inside_prompts(context, entries)
+    cubes = show(context, [e for e, h in zip(entries, held) if not h])
+    confident = sum(float(c["promptgs_confidence"]) >= CONFIDENT for c in cubes)
+    skipped = f", {sum(held)} already inside prompts" if any(held) else ""
+    state.propose_status = "DONE"
+    state.propose_message = (f"{len(cubes)} proposals from {label}, {confident} of confidence "
+                             f"≥ {CONFIDENT}{skipped}{note}")
+    return cubes
+
+
+def follow_training(context, run_dir: Path, final: bool = False) -> list[bpy.types.Object] | None:
+    """Show the proposal file a training run writes at its proposal step
+    (``train --propose-prompts``: ``RUN/proposals.json``) as proposed cubes, once for each
+    version of the file (the trainer writes it again to add ``trained_as``); returns the
+    cubes when it showed them. A file that cannot be read is read again on the next call
+    (it may be half written); at the end of the run (``final``) that is an error in the panel."""
+    global _training_file
+    path = Path(run_dir) / TRAINING_FILE
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    version = (str(path), stat.st_mtime_ns, stat.st_size)
+    if version == _training_file:
+        return None
+    state = context.window_manager.promptgs_run
+    try:
+        entries, data = load(path)
+    except ProposeError as exc:
+        if final:
+            _training_file = version
+            state.propose_status, state.propose_message = "ERROR", str(exc)[:300]
+        return None
+    _training_file = version
+    trained = len(data.get("trained_as") or [])
+    step = data.get("step")
+    return present(context, entries, f"training step {step}" if step is not None else "the training run",
+                   f" (the run trains {trained} box{'es' if trained > 1 else ''} around them)" if trained else "")
 
 
 def clear(context) -> None:

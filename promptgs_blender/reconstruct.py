@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from . import colmap, importer
-from .trainer import TrainerError, TrainerRun, engine_command
+from .trainer import TrainerRun, engine_command, start_run
 
 _job: TrainerRun | None = None
 _stage: dict = {}  # the job's last sfm_stage event
@@ -35,12 +35,8 @@ def start(context, python: str, source: Path, out: Path) -> TrainerRun:
     if not source.exists():
         raise ReconstructError(f"{source}: not found (choose a folder of photos or a video file)")
     out.parent.mkdir(parents=True, exist_ok=True)
-    run = TrainerRun(engine_command(python, "sfm", str(source), "--out", str(out), "--events"),
-                     out.parent / f"{out.name}_sfm_stderr.log", out=out)
-    try:
-        run.start()
-    except TrainerError as exc:
-        raise ReconstructError(str(exc)) from None
+    run = start_run(engine_command(python, "sfm", str(source), "--out", str(out), "--events"),
+                    out.parent / f"{out.name}_sfm_stderr.log", out, ReconstructError)
     state.sfm_status, state.sfm_message, state.sfm_out = "RUNNING", f"Starting structure from motion on {source.name}…", str(out)
     state.sfm_progress = 0.0
     _job = run
@@ -100,7 +96,7 @@ def drain(context) -> bool:
             tail = event.get("stderr_tail") or []
             state.sfm_status = "CANCELLED" if _job.cancel_requested else "ERROR"
             state.sfm_message = (tail[-1] if tail else f"promptgs sfm exited with code {event.get('returncode')}")[:300]
-    if _job.finished and _job.events.empty():
+    if _job.done:
         _job = None
         return False
     return True

@@ -190,6 +190,11 @@ class TrainerRun:
         """True once the reader has seen the end of the stream (all events are queued)."""
         return self._thread is not None and not self._thread.is_alive()
 
+    @property
+    def done(self) -> bool:
+        """True once the stream has ended and every event was taken: the job can be forgotten."""
+        return self.finished and self.events.empty()
+
     def drain(self, limit: int = 10000) -> list[dict]:
         """Events queued since the last call, oldest first (never blocks)."""
         out = []
@@ -239,6 +244,17 @@ class TrainerRun:
         if self._thread is not None:
             self._thread.join(timeout)
         return self.finished
+
+
+def start_run(argv: list[str], log_path: Path, out: Path, error: type[Exception]) -> TrainerRun:
+    """Start a background engine command (render, propose, sfm); a problem starting it is
+    raised as ``error``, the job's own error class, with the same message."""
+    run = TrainerRun(argv, log_path, out=out)
+    try:
+        run.start()
+    except TrainerError as exc:
+        raise error(str(exc)) from None
+    return run
 
 
 def exit_line(event: dict, what: str) -> str:

@@ -173,6 +173,8 @@ def drain_and_apply(context=None) -> bool:
     """Apply queued trainer events; True while a job is still running.
 
     Only the newest snapshot of a batch is loaded. A ``done`` event loads the final PLY.
+    The proposals a run makes while it trains (``propose_prompts``) become proposed cubes
+    when their file appears (:func:`proposals.follow_training`).
     """
     global _train, _dataset_job
     context = context or bpy.context
@@ -197,7 +199,10 @@ def drain_and_apply(context=None) -> bool:
                 load_result(context, Path(result), keep_scores=True)
             except (OSError, ValueError) as exc:
                 state.last_output = f"could not read result {result}: {exc}"
-        if _train.finished and _train.events.empty():
+        ended = _train.done
+        if state.out_dir:  # proposals of `--propose-prompts`, when the run has written them
+            proposals.follow_training(context, Path(state.out_dir), final=ended)
+        if ended:
             _train = None
         else:
             busy = True
@@ -213,7 +218,7 @@ def drain_and_apply(context=None) -> bool:
                     state.dataset_message = (tail[-1] if tail else f"exit code {event.get('returncode')}")[:300]
                 else:
                     state.dataset_message = f"Dataset written to {_dataset_job.out}"
-        if _dataset_job.finished and _dataset_job.events.empty():
+        if _dataset_job.done:
             _dataset_job = None
         else:
             busy = True

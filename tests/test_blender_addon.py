@@ -128,8 +128,10 @@ CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap"
           "train_with_recorded_events_updates_objects", "cancel_keeps_last_snapshot",
           "crashed_trainer_shows_error_lines", "wrong_trainer_path_is_a_clear_error",
           "dataset_without_images_is_a_clear_error", "dataset_generation_runs_in_background",
-          "reconstruct_from_photos_imports_the_result", "reconstruct_errors_and_cancel", "load_result_reads_3dgs_ply", "million_points_update", "display_settings_apply", "propose_accept_and_reject", "panels_draw_in_every_state", "loading_a_file_stops_the_trainer",
-          "never_imports_torch_or_engine"]
+          "reconstruct_from_photos_imports_the_result", "reconstruct_errors_and_cancel", "load_result_reads_3dgs_ply", "million_points_update", "display_settings_apply", "propose_accept_and_reject",
+          "proposed_cubes_drawn_in_their_colour", "training_proposals_become_proposed_cubes",
+          "panels_draw_in_every_state", "loading_a_file_stops_the_trainer", "overlay_handler_follows_register",
+          "proposed_cubes_draw_orange_pixels", "never_imports_torch_or_engine"]
 
 
 @pytest.mark.parametrize("line", LINES, ids=str)
@@ -155,6 +157,17 @@ def test_point_clouds_carry_what_the_mesh_carries(line_results, line):
         assert sorted(a.files) == sorted(b.files)
         for key in a.files:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+@pytest.mark.parametrize("line", [line for line in LINES if line.bpy >= "5.2"], ids=str)
+def test_overlay_draws_where_blender_can_draw_without_a_window(line_results, line):
+    """5.2+ can start its GPU module in background (gpu.init): the overlay was drawn there."""
+    _, results = line_results(line)
+    outcome = results["proposed_cubes_draw_orange_pixels"]
+    assert outcome["ok"], outcome.get("error")
+    if not outcome["drawn"] and outcome["why"].startswith("gpu.init"):
+        pytest.skip(outcome["why"])  # no offscreen GPU context on this machine
+    assert outcome["drawn"] and outcome["orange_pixels"] > 100, outcome
 
 
 def _blender_binary() -> str | None:

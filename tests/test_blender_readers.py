@@ -286,7 +286,7 @@ def _run_to_end(run: trainer.TrainerRun, state, timeout: float = 30.0) -> list[d
         for event in batch:
             trainer.reduce_event(state, event)
         events += batch
-        if run.finished and run.events.empty():
+        if run.done:
             return events
         time.sleep(0.02)
     raise AssertionError("the trainer did not finish")
@@ -347,6 +347,20 @@ def test_wrong_trainer_path_is_a_clear_error(tmp_path):
         run.start()
     assert "not an executable" in trainer.check_python(str(tmp_path))
     assert "error" in trainer.probe("/no/such/python")
+
+
+def test_background_job_start_and_end(tmp_path, monkeypatch):
+    """start_run: a job's start problem comes as the job's own error class; ``done`` only
+    once the exit event was taken."""
+    class JobError(Exception):
+        pass
+
+    with pytest.raises(JobError, match="Trainer command not found: /no/such/python"):
+        trainer.start_run(["/no/such/python", "-m", "promptgs_engine", "propose"], tmp_path / "log", tmp_path, JobError)
+    monkeypatch.setenv("FAKE_TRAINER_MODE", "ok")
+    run = trainer.start_run(_fake_argv(tmp_path, iterations=3), tmp_path / "stderr.log", tmp_path, JobError)
+    assert run.wait(30) and not run.done  # ended, its events not taken yet
+    assert run.exit_event()["returncode"] == 0 and run.done
 
 
 def test_pure_modules_never_import_torch_or_the_engine():

@@ -603,6 +603,141 @@ def propose_accept_and_reject():
     return {"message": state().propose_message}
 
 
+def edges_in_box_frame(edges: np.ndarray, box: dict, root) -> np.ndarray:
+    """Edge points (Blender world) in the frame of a prompt-file box (dataset coordinates)."""
+    to_dataset = np.array(root.matrix_world.inverted()) if root is not None else np.eye(4)
+    points = edges @ to_dataset[:3, :3].T + to_dataset[:3, 3]
+    rotation = np.array(addon("coords").quat_to_rotmat(box["rotation_wxyz"]))
+    return (points - np.array(box["center"])) @ rotation
+
+
+def assert_cube_edges(edges: np.ndarray, box: dict, root) -> None:
+    """12 distinct edges of the box: every end at a corner, each edge along one box axis."""
+    assert edges.shape == (24, 3), edges.shape
+    local = edges_in_box_frame(edges.astype(np.float64), box, root)
+    half = np.array(box["size"]) / 2.0
+    np.testing.assert_allclose(np.abs(local), np.broadcast_to(half, local.shape), rtol=1e-4, atol=1e-5)
+    signs = np.sign(local).reshape(12, 2, 3)
+    assert all((a != b).sum() == 1 for a, b in signs), signs  # one axis per edge
+    assert len({tuple(sorted(map(tuple, pair))) for pair in signs}) == 12  # all 12 edges
+    lengths = np.sort(np.linalg.norm(local[1::2] - local[0::2], axis=1))
+    np.testing.assert_allclose(lengths, np.sort(np.repeat(box["size"], 4)), rtol=1e-4)
+
+
+def proposal_entries() -> list[dict]:
+    from fake_trainer import proposal_file
+    return json.loads(proposal_file())["prompts"]
+
+
+@check
+def proposed_cubes_drawn_in_their_colour():
+    """The viewport overlay's lines: each proposed cube's 12 edges (rotated, scaled), none
+    for an accepted prompt or a hidden cube; accepting a cube takes it off the overlay."""
+    proposals, overlay = addon("proposals"), addon("overlay")
+    root = scene().promptgs.root
+    assert overlay.handler() is not None, "no draw handler after the add-on was enabled"
+    cubes = proposals.show(bpy.context, proposal_entries())
+    cubes[0].scale = (1.0, 2.0, 0.5)  # the user stretched it: a rotated, non-uniform box
+    cubes[1].empty_display_size = 1.3
+    bpy.ops.promptgs.add_prompt()
+    prompt = bpy.context.active_object
+    prompt.location, prompt.scale = (0.4, 0.1, -0.2), (0.1, 0.1, 0.1)
+    for obj in bpy.context.selected_objects:
+        obj.select_set(False)
+    bpy.context.view_layer.update()
+    plain, selected = overlay.proposed_edges(bpy.context)
+    assert plain.shape == (48, 3) and selected.shape == (0, 3), (plain.shape, selected.shape)
+    for cube, edges in zip(cubes, (plain[:24], plain[24:])):
+        assert_cube_edges(edges, box_of(cube, root), root)
+    prompt_corners = overlay.cube_edges(prompt.matrix_world, prompt.empty_display_size)
+    assert not np.isin(prompt_corners.round(5), plain.round(5)).all(axis=1).any()  # the prompt is not drawn
+    cubes[1].select_set(True)
+    plain, selected = overlay.proposed_edges(bpy.context)
+    assert plain.shape == selected.shape == (24, 3)
+    assert_cube_edges(selected, box_of(cubes[1], root), root)
+    cubes[1].hide_set(True)
+    plain, selected = overlay.proposed_edges(bpy.context)
+    assert plain.shape == (24, 3) and selected.shape == (0, 3)
+    cubes[1].hide_set(False)
+    cubes[1].select_set(True)  # hiding deselected it
+    proposals.accept(bpy.context, cubes[0])
+    plain, selected = overlay.proposed_edges(bpy.context)
+    assert plain.shape == (0, 3) and selected.shape == (24, 3), "the accepted cube is still drawn"
+    assert_cube_edges(selected, box_of(cubes[1], root), root)
+    for obj in (cubes[0], cubes[1], prompt):
+        bpy.data.objects.remove(obj)
+    proposals.update_markers(bpy.context)
+    assert overlay.proposed_edges(bpy.context)[0].shape == (0, 3)
+    return {"edges_per_cube": 12}
+
+
+def proposed_names() -> list[str]:
+    return sorted(o.name for o in addon("proposals").proposed_objects(scene()))
+
+
+@check
+def training_proposals_become_proposed_cubes():
+    """A run started with Propose While Training: its RUN/proposals.json becomes proposed
+    cubes while it trains (once, though the file is written three times); a second run
+    replaces them and leaves out the one the user accepted."""
+    proposals, training = addon("proposals"), addon("training")
+    root = scene().promptgs.root
+    fake_trainer("ok")
+    settings = scene().promptgs
+    settings.preset, settings.iterations, settings.propose_prompts = "CUSTOM", 30, True
+    bpy.ops.promptgs.train()
+    out = Path(state().out_dir)
+    first_job = json.loads(Path(state().job_path).read_text())
+    assert first_job["propose_prompts"] is True
+    counts, seen_running = set(), False
+    deadline = time.time() + 60
+    while training.drain_and_apply(bpy.context) and time.time() < deadline:
+        counts.add(len(proposals.proposed_objects(scene())))
+        seen_running |= bool(proposals.proposed_objects(scene())) and state().status == "RUNNING"
+        time.sleep(0.02)
+    assert state().status == "DONE", (state().status, state().message)
+    assert seen_running, "the proposals appeared only after the run"
+    assert counts <= {0, 2}, counts  # never twice the cubes
+    cubes = proposals.proposed_objects(scene())
+    written = json.loads((out / "proposals.json").read_text())
+    assert len(cubes) == 2 and written["trained_as"], (len(cubes), written.keys())
+    assert [c["promptgs_confidence"] for c in cubes] == pytest_approx([0.82, 0.21])
+    for cube, entry in zip(cubes, written["prompts"]):
+        box = box_of(cube, root)
+        np.testing.assert_allclose(box["center"], entry["center"], atol=1e-5)
+        np.testing.assert_allclose(box["size"], entry["size"], atol=1e-5)
+    assert state().propose_status == "DONE"
+    assert state().propose_message == ("2 proposals from training step 15, 1 of confidence ≥ 0.3 "
+                                       "(the run trains 1 box around them)"), state().propose_message
+    names_after_first = proposed_names()
+    training.drain_and_apply(bpy.context)
+    assert proposed_names() == names_after_first
+    # accept the first, train again: the same proposals come back, the accepted one not twice
+    accepted = proposals.accept(bpy.context, cubes[0])
+    bpy.ops.promptgs.train()
+    second = Path(state().out_dir)
+    run_until_idle(60)
+    assert second != out and state().status == "DONE", (state().status, state().message)
+    job = json.loads(Path(state().job_path).read_text())
+    assert len(job["prompts"]["prompts"]) == len(first_job["prompts"]["prompts"]) + 1  # the accepted cube is trained
+    cubes = proposals.proposed_objects(scene())
+    assert len(cubes) == 1 and abs(cubes[0]["promptgs_confidence"] - 0.21) < 1e-6, [c.name for c in cubes]
+    assert state().propose_message.startswith("1 proposals from training step 15, 0 of confidence ≥ 0.3, "
+                                              "1 already inside prompts"), state().propose_message
+    assert len(addon("overlay").proposed_edges(bpy.context)[0]) + len(addon("overlay").proposed_edges(bpy.context)[1]) == 24
+    # a run without proposing leaves the proposed cubes as they are
+    settings.propose_prompts = False
+    bpy.ops.promptgs.train()
+    run_until_idle(60)
+    assert not (Path(state().out_dir) / "proposals.json").exists()
+    assert len(proposals.proposed_objects(scene())) == 1
+    for obj in proposals.proposed_objects(scene()) + [accepted]:
+        bpy.data.objects.remove(obj)
+    proposals.update_markers(bpy.context)
+    settings.preset = "STANDARD"
+    return {"message": state().propose_message}
+
+
 @check
 def panels_draw_in_every_state():
     ui = addon("ui")
@@ -629,6 +764,91 @@ def loading_a_file_stops_the_trainer():
     assert not run.running and run.process.returncode is not None
     assert addon("training").current_run() is None
     return {"returncode": run.process.returncode}
+
+
+@check
+def overlay_handler_follows_register():
+    """Disabling the add-on removes its draw handler (removing it again fails: gone);
+    enabling adds one again; twice over."""
+    import addon_utils
+    from harness import ADDON
+    handles = []
+    for _ in range(2):
+        handle = addon("overlay").handler()
+        assert handle is not None
+        handles.append(handle)
+        addon_utils.disable(ADDON, default_set=True)
+        assert ADDON not in bpy.context.preferences.addons
+        try:
+            bpy.types.SpaceView3D.draw_handler_remove(handle, "WINDOW")
+            raise AssertionError("the draw handler was still there after the add-on was disabled")
+        except ValueError:
+            pass
+        assert addon("overlay").handler() is None
+        addon_utils.enable(ADDON, default_set=True)
+        assert ADDON in bpy.context.preferences.addons and addon("overlay").handler() is not None
+    assert addon("overlay").handler() not in handles
+    return {"cycles": 2}
+
+
+@check
+def proposed_cubes_draw_orange_pixels():
+    """Where Blender can draw without a window (5.2+: gpu.init), the overlay's draw
+    callback in an offscreen buffer: orange on a proposed cube's edges, nothing inside it
+    or for an accepted prompt."""
+    import gpu
+    if not hasattr(gpu, "init"):
+        return {"drawn": False, "why": f"no gpu.init in Blender {bpy.app.version_string}"}
+    try:
+        gpu.init()
+    except SystemError as exc:
+        return {"drawn": False, "why": f"gpu.init: {exc}"}
+    proposals, overlay = addon("proposals"), addon("overlay")
+    width, height = 160, 120
+    view = Matrix.Translation((0.0, 0.0, -4.0))  # camera at z = 4 looking down -z
+    projection = Matrix(((1.5, 0, 0, 0), (0, 2.0, 0, 0), (0, 0, -1.0002, -0.2), (0, 0, -1, 0)))
+
+    def render() -> np.ndarray:
+        offscreen = gpu.types.GPUOffScreen(width, height)
+        try:
+            with offscreen.bind():
+                framebuffer = gpu.state.active_framebuffer_get()
+                framebuffer.clear(color=(0.0, 0.0, 0.0, 0.0))
+                with gpu.matrix.push_pop():
+                    gpu.matrix.load_matrix(view)
+                    gpu.matrix.load_projection_matrix(projection)
+                    overlay.draw(SimpleNamespace(scene=scene(), view_layer=bpy.context.view_layer, space_data=None))
+                pixels = np.array(framebuffer.read_color(0, 0, width, height, 4, 0, "FLOAT").to_list(), np.float32)
+        finally:
+            offscreen.free()
+        return pixels.reshape(height, width, 4)
+
+    def pixel_of(point) -> tuple[int, int]:
+        clip = projection @ view @ Vector((*point, 1.0))
+        return int((clip.x / clip.w + 1) / 2 * width), int((clip.y / clip.w + 1) / 2 * height)
+
+    def orange(rgba) -> np.ndarray:
+        return (rgba[..., 0] > 0.8) & (rgba[..., 1] > 0.3) & (rgba[..., 1] < 0.6) & (rgba[..., 2] < 0.2)
+
+    scene().promptgs.root = None
+    entry = {"center": [0.0, 0.0, 0.0], "size": [1.0, 1.0, 1.0], "rotation_wxyz": [1.0, 0.0, 0.0, 0.0], "confidence": 0.9}
+    cube = proposals.show(bpy.context, [entry])[0]
+    cube.select_set(False)
+    image = render()
+    corners = [pixel_of((x * 0.5, y * 0.5, 0.5)) for x, y in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    hits = []
+    for (x0, y0), (x1, y1) in zip(corners, corners[1:] + corners[:1]):  # the front face's edge midpoints
+        x, y = (x0 + x1) // 2, (y0 + y1) // 2
+        hits.append(bool(orange(image[max(0, y - 2):y + 3, max(0, x - 2):x + 3]).any()))
+    cx, cy = pixel_of((0.0, 0.0, 0.0))
+    inside = bool(orange(image[cy - 3:cy + 4, cx - 3:cx + 4]).any())
+    n_orange = int(orange(image).sum())
+    proposals.accept(bpy.context, cube)  # an accepted prompt: the overlay draws nothing
+    after = int(orange(render()).sum())
+    bpy.data.objects.remove(cube)
+    assert all(hits) and not inside and n_orange > 100, (hits, inside, n_orange)
+    assert after == 0, after
+    return {"drawn": True, "orange_pixels": n_orange, "renderer": gpu.platform.renderer_get()}
 
 
 @check

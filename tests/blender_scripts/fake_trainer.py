@@ -4,7 +4,8 @@ Used as the add-on's "trainer Python" in tests (through a small executable wrapp
 parses ``--out`` and ``--job``, writes snapshot ``.npz`` files with numpy and prints
 JSON-lines events. ``FAKE_TRAINER_MODE`` picks the behaviour: ``ok`` (default), ``crash``
 (stderr lines, exit code 3), ``slow`` (runs until interrupted; SIGINT stops it cleanly).
-``propose``, ``dataset`` and ``sfm`` answer as those commands do.
+``propose``, ``dataset`` and ``sfm`` answer as those commands do; a job with
+``propose_prompts`` writes RUN/proposals.json half-way, as ``train --propose-prompts`` does.
 """
 
 import json
@@ -93,6 +94,12 @@ PROPOSALS = [
 ]
 
 
+def proposal_file(**info) -> str:
+    rotated = [dict(p, rotation_wxyz=(np.array(p["rotation_wxyz"]) / np.linalg.norm(p["rotation_wxyz"])).tolist())
+               for p in PROPOSALS]
+    return json.dumps({"schema": "promptgs-proposals/1", "prompts": rotated, "rejected": [], "unmatched": {}, **info})
+
+
 def propose(argv, mode):
     """``promptgs propose RUN --out FILE [--snapshot S]``: the fixed proposals, or one error line."""
     run, out = Path(argv[argv.index("propose") + 1]), Path(argv[argv.index("--out") + 1])
@@ -100,10 +107,23 @@ def propose(argv, mode):
     if mode == "crash":
         print(f"promptgs: error: {run}: the run has no point_cloud.ply yet", file=sys.stderr)
         sys.exit(2)
-    rotated = [dict(p, rotation_wxyz=(np.array(p["rotation_wxyz"]) / np.linalg.norm(p["rotation_wxyz"])).tolist())
-               for p in PROPOSALS]
-    out.write_text(json.dumps({"schema": "promptgs-proposals/1", "prompts": rotated, "rejected": [], "unmatched": {}}))
-    print(f"{len(rotated)} proposals; wrote {out}", flush=True)
+    out.write_text(proposal_file())
+    print(f"{len(PROPOSALS)} proposals; wrote {out}", flush=True)
+
+
+def propose_in_training(out: Path, step: int) -> None:
+    """``train --propose-prompts`` at its proposal step: RUN/proposals.json, first half
+    written (as a reader may find it), then whole, then again with ``trained_as``; a
+    pause after it, so that a client sees it while the run goes on."""
+    path = out / "proposals.json"
+    text = proposal_file(step=step)
+    path.write_text(text[: len(text) // 2])
+    time.sleep(0.3)
+    path.write_text(text)
+    time.sleep(0.3)
+    trained = [{k: PROPOSALS[0][k] for k in ("center", "size", "rotation_wxyz", "weight")} | {"members": [0]}]
+    path.write_text(proposal_file(step=step, trained_as=trained))
+    time.sleep(1.0)
 
 
 def main(argv):
@@ -133,6 +153,8 @@ def main(argv):
                  n_gaussians=n, elapsed_s=step * 0.01, eta_s=(iterations - step) * 0.01)
             if step % 10 == 0:
                 emit(event="snapshot", step=step, path=str(snapshot(out, step, n, 0)), n_gaussians=n)
+            if job.get("propose_prompts") and step == iterations // 2:
+                propose_in_training(out, step)
             time.sleep(0.05 if mode == "slow" else 0.001)
     except KeyboardInterrupt:
         (out / "cancelled").write_text(str(step))
