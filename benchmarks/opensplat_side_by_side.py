@@ -68,23 +68,39 @@ def ours_worker(dataset: str, images: str, steps: int) -> int:
     return 0
 
 
-def timed_run(cmd: list[str], env: dict, steps: int) -> dict:
-    """Run a trainer; the arrival time of each 'Step N' line, and the other lines' tail."""
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a running process, all its threads (Linux), or None."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def timed_run(cmd: list[str], env: dict, steps: int, cpu: bool = False) -> dict:
+    """Run a trainer; the arrival time of each 'Step N' line, and the other lines' tail.
+    With ``cpu``, also the trainer's CPU time (all threads) at each of those lines."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, bufsize=1)
     stamps: list[float] = []
+    cpu_stamps: list[float] = []
     other: list[str] = []
     assert proc.stdout
     for line in proc.stdout:
         if line.startswith("Step "):
             stamps.append(time.perf_counter())
+            if cpu:
+                cpu_stamps.append(cpu_seconds(proc.pid) or float("nan"))
         else:
             other.append(line.rstrip())
     rc = proc.wait()
     if rc != 0 or len(stamps) < steps:
         tail = "\n".join(other[-15:])
         raise RuntimeError(f"{cmd[0]} exited with {rc} after {len(stamps)} steps:\n{tail}")
-    return {"stamps": stamps, "wall_s": time.perf_counter() - t0, "log_tail": other[-3:]}
+    run = {"stamps": stamps, "wall_s": time.perf_counter() - t0, "log_tail": other[-3:]}
+    if cpu:
+        run["cpu_stamps"] = cpu_stamps
+    return run
 
 
 def step_times(stamps: list[float], skip: int) -> list[float]:

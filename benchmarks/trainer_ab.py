@@ -20,41 +20,11 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from opensplat_side_by_side import step_times  # noqa: E402
-
-
-def cpu_seconds(pid: int) -> float | None:
-    """User + system CPU time of a running process, all its threads (Linux), or None."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def timed_worker(cmd: list[str], env: dict, steps: int) -> tuple[list[float], list[float]]:
-    """Run a trainer worker; the wall time and the worker's CPU time at each 'Step N' line."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, bufsize=1)
-    wall: list[float] = []
-    cpu: list[float] = []
-    other: list[str] = []
-    assert proc.stdout
-    for line in proc.stdout:
-        if line.startswith("Step "):
-            wall.append(time.perf_counter())
-            cpu.append(cpu_seconds(proc.pid) or float("nan"))
-        else:
-            other.append(line.rstrip())
-    rc = proc.wait()
-    if rc != 0 or len(wall) < steps:
-        raise RuntimeError(f"{cmd[0]} exited with {rc} after {len(wall)} steps:\n" + "\n".join(other[-15:]))
-    return wall, cpu
+from opensplat_side_by_side import step_times, timed_run  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -82,7 +52,8 @@ def main(argv: list[str] | None = None) -> int:
             env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), OMP_WAIT_POLICY="PASSIVE", PYTHONPATH=str(repo))
             cmd = [sys.executable, str(repo / "benchmarks" / "opensplat_side_by_side.py"), "--ours-worker",
                    str(args.dataset), args.images, str(args.steps)]
-            wall, cpu = timed_worker(cmd, env, args.steps)
+            run = timed_run(cmd, env, args.steps, cpu=True)
+            wall, cpu = run["stamps"], run["cpu_stamps"]
             medians[name].append(statistics.median(step_times(wall, args.skip)))
             # CPU clock ticks are 10 ms: the CPU time of a step is read over the measured steps
             cpu_medians[name].append((cpu[-1] - cpu[args.skip]) / (len(cpu) - 1 - args.skip))
