@@ -89,11 +89,11 @@ def render(
     if rasterize_mode not in RASTERIZE_MODES:
         raise ValueError(f"unknown rasterize_mode {rasterize_mode!r}; choose one of {', '.join(RASTERIZE_MODES)}")
     name = resolve_backend(backend, means.device)
-    if sh_rest is not None and (name != "cpu" or sh_degree is None):
-        colors, sh_rest = torch.cat([colors, sh_rest], dim=1), None
     if name == "cuda":
         from .cuda import render_cuda
 
+        if sh_rest is not None:  # gsplat reads the coefficients as one tensor
+            colors = torch.cat([colors, sh_rest], dim=1)
         return render_cuda(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree, backgrounds, render_mode, absgrad, near_plane, far_plane, eps2d, rasterize_mode,
