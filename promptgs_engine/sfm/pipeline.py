@@ -231,7 +231,7 @@ def _thumbnails(longest: int, options: SfmOptions) -> bool:
     return min(longest, cap or longest) < SMALL_IMAGE_PX
 
 
-def _extract(pycolmap, db: Path, image_dir: Path, names: list[str], options: SfmOptions, camera: str, longest: int, reporter: Reporter) -> int:
+def _extract(pycolmap, db: Path, image_dir: Path, names: list[str], options: SfmOptions, camera: str, thumbnails: bool, reporter: Reporter) -> int:
     """SIFT features of every image not yet in the database; returns how many were already there."""
     existing = 0
     camera_id = -1
@@ -250,7 +250,7 @@ def _extract(pycolmap, db: Path, image_dir: Path, names: list[str], options: Sfm
     extraction.num_threads = options.num_threads
     extraction.sift.max_num_features = options.max_features
     cap = options.max_image_size
-    if _thumbnails(longest, options):
+    if thumbnails:
         extraction.sift.peak_threshold = SMALL_IMAGE_PEAK_THRESHOLD
     if cap is not None:
         extraction.max_image_size = cap
@@ -426,14 +426,14 @@ def run_sfm(
         if n < 2:
             raise DatasetError(f"{image_dir}: SfM needs at least 2 images, found {n}")
         longest = max(max(image_size(image_dir / nm)) for nm in names[:: max(1, n // 20)])
+        thumbnails = _thumbnails(longest, options)
         camera = _camera_mode(options, kind, image_dir, names)
         matcher = choose_matcher(options.matcher, n, kind)
         db = work / "database.db"
         with _ColmapLog(work / "colmap-"):
             stage_name = "features"
-            reused = _extract(pycolmap, db, image_dir, names, options, camera, longest, reporter)
+            reused = _extract(pycolmap, db, image_dir, names, options, camera, thumbnails, reporter)
             stage_name = "matching"
-            thumbnails = _thumbnails(longest, options)
             n_pairs, pairs_reused = _match(pycolmap, db, work, names, matcher, options, thumbnails, reporter)
             stage_name = "mapping"
             best, n_models, model_dir = _map(pycolmap, db, image_dir, work / "models", n, options, thumbnails, reporter)
