@@ -471,6 +471,7 @@ class Trainer:
             "backend": self.backend,
             "strategy": self.cfg.strategy,
             "peak_rss_mb": peak_rss_mb(),
+            "peak_gpu_mb": peak_gpu_mb(self.device),
             "budget": self.cfg.budget,
             "auto_budget": self.strategy_state.get("auto_budget"),
             "sky_points": self.n_sky_points,
@@ -489,6 +490,17 @@ def peak_rss_mb() -> float | None:
         return None
     kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return kib / (1024.0 * 1024.0) if sys.platform == "darwin" else kib / 1024.0
+
+
+def peak_gpu_mb(device: torch.device) -> float | None:
+    """Peak GPU memory torch allocated on ``device`` so far, in MiB (None off the GPU).
+
+    What torch's allocator handed out; the CUDA context and the allocator's cache add to
+    what nvidia-smi shows for the process.
+    """
+    if device.type != "cuda":
+        return None
+    return torch.cuda.max_memory_allocated(device) / (1024.0 * 1024.0)
 
 
 def _attach_log_file(path: Path) -> logging.Handler:
