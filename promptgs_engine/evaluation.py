@@ -41,6 +41,14 @@ def load_run(run_dir: Path, snapshot: Path | None = None) -> tuple[TrainConfig, 
     return cfg, load_ply(run_dir / "point_cloud.ply")
 
 
+def on_backend_device(params: torch.nn.ParameterDict, backend: str) -> dict[str, torch.Tensor]:
+    """The Gaussians on the device the backend renders on: the GPU for ``cuda``, and for
+    ``auto`` where torch sees one; the CPU otherwise."""
+    use_gpu = backend == "cuda" or (backend == "auto" and torch.cuda.is_available())
+    device = torch.device("cuda" if use_gpu else "cpu")
+    return {name: value.detach().to(device) for name, value in params.items()}
+
+
 def render_view(
     params: torch.nn.ParameterDict,
     camera: Camera,
@@ -68,7 +76,7 @@ def render_view(
             eps2d=screen_filter,
             rasterize_mode=rasterize_mode,
         )
-    return img[0].clamp(0, 1)
+    return img[0].clamp(0, 1).cpu()
 
 
 def find_mask(mask_dir: Path, image_name: str) -> Path | None:
@@ -139,6 +147,7 @@ def evaluate(
         raise PromptGSError("no test views to evaluate (the dataset has no test split)")
     if mask_dir is not None and not Path(mask_dir).is_dir():
         raise PromptGSError(f"{mask_dir}: mask folder not found")
+    params = on_backend_device(params, backend)
     per_image = []
     for camera in tqdm(cameras, desc="eval", disable=quiet, unit="view"):
         cam = camera.downscaled(downscale)
@@ -257,6 +266,7 @@ def render_run(
         views = [cameras[name].downscaled(cfg.downscale) for name in camera_names]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    params = on_backend_device(params, cfg.backend)
     written = []
     for camera in tqdm(views, desc="render", disable=quiet, unit="view"):
         img = render_view(params, camera, cfg.backend, cfg.effective_screen_filter, cfg.rasterize_mode)

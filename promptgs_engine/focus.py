@@ -277,7 +277,7 @@ class PromptFocus:
         steps, feed the error field. ``l1_map`` and ``dssim_map`` are [C, H, W] (the maps
         the training loss was computed from, detached); ``depth`` [C, H, W] is needed on
         the steps that `feeds_field`, and may be None on the others."""
-        gts = torch.stack([v.gt for v in views])
+        gts = torch.stack([v.gt for v in views]).to(rendered.device)
         view_loss = torch.stack(
             [
                 LAMBDA_L1 * l1_map[i].mean() + LAMBDA_DSSIM * dssim_map[i].mean() + LAMBDA_EDGE * edge_loss(rendered[i : i + 1], gts[i : i + 1])
@@ -340,7 +340,7 @@ class PromptFocus:
             triples = []
             for view in views:
                 img, _, _ = t.render_camera(view.camera)
-                triples.append((view.camera, img.clamp(0, 1), view.gt))
+                triples.append((view.camera, img.clamp(0, 1).cpu(), view.gt.cpu()))  # carving runs on the CPU
             budget = t.strategy.effective_budget(t.strategy_state)
             room = None if budget is None else max(budget - t.n_gaussians, 0)
             max_points = 1000 if room is None else min(1000, room)

@@ -123,13 +123,13 @@ def propose_run(run_dir: Path, out: Path | None = None, snapshot: Path | None = 
     """Proposals for a run folder (its ``point_cloud.ply``, or ``snapshot``), written to
     ``out`` (default ``RUN/proposals.json``)."""
     from .data import load_colmap_scene
-    from .evaluation import load_run
+    from .evaluation import load_run, on_backend_device
 
     cfg, params = load_run(run_dir, snapshot)
     scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     cameras = [c.downscaled(cfg.downscale) for c in scene.train_cameras]
     backend = "cuda" if cfg.backend in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
-    draw = params_renderer(params, backend, cfg.effective_screen_filter, cfg.rasterize_mode)
+    draw = params_renderer(on_backend_device(params, backend), backend, cfg.effective_screen_filter, cfg.rasterize_mode)
     result = propose_views(draw, cameras, quiet=quiet)
     result.info.update({"run": str(Path(run_dir).resolve()), "dataset": str(cfg.dataset),
                         "snapshot": str(snapshot) if snapshot else None, "resolution": [cameras[0].width, cameras[0].height]})

@@ -34,11 +34,13 @@ from promptgs_engine.train import Trainer
 
 REPO = Path(__file__).resolve().parents[1]
 ITERATIONS = 240
-COMMON = ["--iterations", str(ITERATIONS), "--resolution-scale", "0.5", "--no-sky", "--budget", "16000", "--quiet"]
+# The CPU backend (gloo): on a machine with one GPU, "auto" would ask two ranks for a GPU each.
+COMMON = ["--iterations", str(ITERATIONS), "--resolution-scale", "0.5", "--no-sky", "--budget", "16000", "--backend", "cpu", "--quiet"]
 
 
 def _config(toy: Path, out: Path, **kw) -> TrainConfig:
-    base = dict(dataset=str(toy), out=str(out), iterations=ITERATIONS, resolution_scale=0.5, sky=False, budget=16000)
+    base = dict(dataset=str(toy), out=str(out), iterations=ITERATIONS, resolution_scale=0.5, sky=False, budget=16000,
+                backend="cpu")
     base.update(kw)
     return TrainConfig(**base)
 

@@ -89,7 +89,7 @@ def prompt_quota(scores: torch.Tensor) -> tuple[int, float]:
     down, and as it shrinks so does the quota. Returns ``(quota, fence)``."""
     if scores.numel() == 0:
         return 0, float("inf")
-    q1, q3 = torch.quantile(scores.double(), torch.tensor([0.25, 0.75], dtype=torch.float64)).tolist()
+    q1, q3 = torch.quantile(scores.double(), torch.tensor([0.25, 0.75], dtype=torch.float64, device=scores.device)).tolist()
     fence = q3 + TUKEY_K * (q3 - q1)
     return int((scores > fence).sum()), float(fence)
 
