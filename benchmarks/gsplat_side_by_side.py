@@ -26,9 +26,10 @@ What differs from simple_trainer, on purpose:
   learning rate and the strategy's size thresholds scale with it alike).
 - simple_trainer's Adam is torch's default one; ours is ``fused=True``. Side B keeps
   gsplat's: that difference is part of what is measured.
-- gsplat 1.5.3's DefaultStrategy never resets opacity (see
-  ``promptgs_engine/strategies/default.py``) while ours does; side B keeps gsplat's
-  behaviour, as its own trainer would. The Gaussian counts of both sides are in the JSON.
+- gsplat 1.5.3's DefaultStrategy never resets opacity (an operator-precedence slip, see
+  ``promptgs_engine/strategies/default.py``); side B applies the reset at the steps its
+  ``reset_every`` names, as ours does and as simple_trainer means to, so both sides grow
+  and prune alike. The Gaussian counts of both sides are in the JSON.
 
 Each run index trains A, then B (seed = run index), each in a fresh process (fresh CUDA
 context), so machine load drifts over both alike. ``--device cpu`` is a smoke mode: side A
@@ -100,6 +101,7 @@ def gsplat_worker(dataset: str, images: str, steps: int, seed: int, device: str,
     """simple_trainer's default training step (see the module docstring), timed."""
     import torch
     from gsplat.strategy import DefaultStrategy
+    from gsplat.strategy.ops import reset_opa
 
     from promptgs_engine.data import load_colmap_scene
     from promptgs_engine.evaluation import evaluate
@@ -168,6 +170,8 @@ def gsplat_worker(dataset: str, images: str, steps: int, seed: int, device: str,
             opt.zero_grad(set_to_none=True)
         scheduler.step()
         strategy.step_post_backward(params, optimizers, state, step, info, packed=False)
+        if 0 < step < sched.refine_stop_iter and step % sched.reset_every == 0:
+            reset_opa(params=params, optimizers=optimizers, state=state, value=strategy.prune_opa * 2.0)
     sync()
     seconds = time.perf_counter() - t0
     backend = "cuda" if device == "cuda" else "cpu"
