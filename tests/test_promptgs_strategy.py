@@ -47,16 +47,18 @@ def _info(n, grads, view_loss=1.0, w=100, h=100):
 UNIT_BOX = PromptBox(center=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0))
 
 
-def _set_stats(s, state, params, score, grads):
-    """Statistics as after a refinement interval: one view each, the given mean score per
-    view and mean view-space gradient (in units of the 3DGS threshold)."""
+def _set_stats(s, state, params, score, grads, votes=4):
+    """Statistics as after a refinement interval: ``votes`` statistics steps saw each
+    Gaussian (enough to grow outside the prompts), with the given mean score per view and
+    mean view-space gradient (in units of the 3DGS threshold)."""
     s._ensure_state(params, state)
     n = params["means"].shape[0]
     state["views"] = torch.ones(n)
     state["score"] = torch.as_tensor(score, dtype=torch.float32).clone()
     state["error"] = torch.zeros(n)
-    state["count"] = torch.ones(n)
-    state["grad2d"] = torch.as_tensor(grads, dtype=torch.float32) * s.grow_grad2d
+    votes = torch.as_tensor(votes, dtype=torch.float32).expand(n).clone()
+    state["count"] = votes
+    state["grad2d"] = torch.as_tensor(grads, dtype=torch.float32) * s.grow_grad2d * votes
 
 
 FILLER = 30  # Gaussians far outside the box, idle: the prompt holds a small part of the scene
@@ -142,7 +144,8 @@ def test_outside_the_prompts_the_largest_gradients_grow_not_the_highest_scores()
     info = _info(2, torch.tensor([[1.2 * unit, 0.0], [2.4 * unit, 0.0]]))
     info["depths"] = torch.tensor([[0.1, 50.0]])
     info["radii"] = torch.tensor([[[40, 40], [1, 1]]], dtype=torch.int32)
-    s._update_state(params, state, info)
+    for _ in range(s.outside_min_votes):  # enough statistics steps to vote outside
+        s._update_state(params, state, info)
     s.record_resampled(state, 1)
     score, _ = s.per_gaussian(params, state)
     assert score[0] > score[1]
@@ -174,6 +177,24 @@ def test_outside_growth_gives_way_to_the_prompts_extra_growth():
     # Without the offset, all grow: 5.
     s, state, params, opts, _ = _prompt_and_outside_candidates(outside_offset=False)
     assert sum(s._grow_gs(params, opts, state, step=100)) == 5
+
+
+def test_outside_a_gradient_seen_by_too_few_statistics_steps_does_not_grow():
+    # Three outside Gaussians over 3DGS's threshold, the largest gradient seen by only one
+    # statistics step, the others by 2 and 3: with outside_min_votes 3 only the last grows,
+    # and the ledger counts the two held back. Inside the prompt, votes change nothing.
+    pts = _box_and_outside(2, 3)
+    params, opts = _params(pts)
+    s, state = _strategy([UNIT_BOX], outside_min_votes=3)
+    votes = torch.cat([torch.full((2,), 1.0), torch.tensor([1.0, 2.0, 3.0]), torch.full((FILLER,), 9.0)])
+    grads = torch.cat([torch.zeros(2), torch.tensor([4.0, 2.0, 1.5]), torch.zeros(FILLER)])
+    _set_stats(s, state, params, torch.ones(5 + FILLER), grads, votes=votes)
+    grow = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=100)
+    assert grow.nonzero().flatten().tolist() == [4]
+    assert state["ledger"]["refinements"][-1]["few_votes"] == 2
+    s, state = _strategy([UNIT_BOX], outside_min_votes=1)  # 3DGS's rule: every one grows
+    _set_stats(s, state, params, torch.ones(5 + FILLER), grads, votes=votes)
+    assert s.growth_candidates(params, state, state["grad2d"] / state["count"], step=100).nonzero().flatten().tolist() == [2, 3, 4]
 
 
 def test_what_outside_growth_cannot_offset_is_carried_to_the_next_refinement():

@@ -37,6 +37,13 @@ the opacity reset applied). Inside them:
   Gaussians smaller than a pixel shows gaps whose gradients grow it (a 64 px toy scene
   grew 82k Gaussians against 3DGS's 65k that way). Low-resolution gradients grew about
   twice the 3DGS count on the mountain (docs/promptgs.md).
+* **Enough votes outside** (``outside_min_votes``, 3). The statistics steps are about
+  30% of the steps, so an outside Gaussian's mean gradient rests on a few views (a median
+  of 3–4 per refinement interval on the sparse mountain at 1500 steps) where 3DGS
+  averages over every step. A mean of few samples crosses the threshold by chance far
+  more often: the sparse mountain grew 100k Gaussians outside its box where 3DGS grew 84k
+  in all. Only Gaussians seen by at least three statistics steps since the last
+  refinement may grow outside (the ledger's ``few_votes`` counts those held back).
 * **Resampled Gaussians earn their keep** (`idle_resampled`): one that is still under
   ``carve_keep_opacity`` (0.05) a refinement interval after it came, and after the last
   opacity reset, is removed at the next refinement, and its cost is paid back to the
@@ -131,6 +138,7 @@ def new_ledger() -> dict[str, Any]:
 class PromptGSStrategy(ResettingDefaultStrategy):
     prompts: list = field(default_factory=list)  # list[PromptBox]
     outside_offset: bool = True  # outside growth gives way to the prompts' extra growth
+    outside_min_votes: int = 3  # statistics steps that must have seen an outside Gaussian before it may grow
     protect_steps: int = 500
     carve_error_threshold: float = 0.08  # per-pixel error (mean abs, 0..1) that votes for resampling
     carve_max_candidates: int = 2_000_000  # grid points tried per box; beyond it the grid coarsens
@@ -239,6 +247,10 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         else:
             chosen_in, fence = self.prompt_growth(params, state, inside)
         outside = rule & ~inside
+        # A mean gradient from a handful of views crosses the threshold by chance far more
+        # often than 3DGS's mean over every step (see outside_min_votes).
+        few_votes = outside & (state["count"] < self.outside_min_votes)
+        outside = outside & ~few_votes
         n_out = int(outside.sum())
         # What the prompts add beyond 3DGS's rule: inside growth over what the rule
         # would have grown there, the Gaussians resampled since the last refinement, and
@@ -260,7 +272,8 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         ledger["refinements"].append({
             "step": int(step), "n": int(params["means"].shape[0]), "inside": int(inside.sum()),
             "rule_inside": n_rule_in, "grown_inside": int(chosen_in.sum()), "score_fence": fence,
-            "rule_outside": n_out, "grown_outside": int(kept.sum()), "resampled": resampled, "debt": int(state["debt"]),
+            "rule_outside": n_out, "few_votes": int(few_votes.sum()), "grown_outside": int(kept.sum()),
+            "resampled": resampled, "debt": int(state["debt"]),
         })
         ledger["grown_inside"] += int(chosen_in.sum())
         ledger["grown_outside"] += int(kept.sum())
