@@ -179,22 +179,23 @@ def test_outside_growth_gives_way_to_the_prompts_extra_growth():
     assert sum(s._grow_gs(params, opts, state, step=100)) == 5
 
 
-def test_outside_a_gradient_seen_by_too_few_statistics_steps_does_not_grow():
-    # Three outside Gaussians over 3DGS's threshold, the largest gradient seen by only one
-    # statistics step, the others by 2 and 3: with outside_min_votes 3 only the last grows,
-    # and the ledger counts the two held back. Inside the prompt, votes change nothing.
-    pts = _box_and_outside(2, 3)
+def test_outside_a_gradient_seen_by_too_few_statistics_steps_needs_to_be_larger():
+    # Outside the prompt the summed gradient is divided by at least three views. Four
+    # outside Gaussians over 3DGS's threshold, seen by 1, 2, 3 and 1 statistics steps with
+    # mean gradients 2.0, 1.2, 1.5 and 4.0 (in threshold units): over three views that is
+    # 0.67, 0.8, 1.5 and 1.33, so the last two grow and the ledger counts two held back.
+    pts = _box_and_outside(2, 4)
     params, opts = _params(pts)
     s, state = _strategy([UNIT_BOX], outside_min_votes=3)
-    votes = torch.cat([torch.full((2,), 1.0), torch.tensor([1.0, 2.0, 3.0]), torch.full((FILLER,), 9.0)])
-    grads = torch.cat([torch.zeros(2), torch.tensor([4.0, 2.0, 1.5]), torch.zeros(FILLER)])
-    _set_stats(s, state, params, torch.ones(5 + FILLER), grads, votes=votes)
+    votes = torch.cat([torch.full((2,), 1.0), torch.tensor([1.0, 2.0, 3.0, 1.0]), torch.full((FILLER,), 9.0)])
+    grads = torch.cat([torch.zeros(2), torch.tensor([2.0, 1.2, 1.5, 4.0]), torch.zeros(FILLER)])
+    _set_stats(s, state, params, torch.ones(6 + FILLER), grads, votes=votes)
     grow = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=100)
-    assert grow.nonzero().flatten().tolist() == [4]
+    assert grow.nonzero().flatten().tolist() == [4, 5]
     assert state["ledger"]["refinements"][-1]["few_votes"] == 2
     s, state = _strategy([UNIT_BOX], outside_min_votes=1)  # 3DGS's rule: every one grows
-    _set_stats(s, state, params, torch.ones(5 + FILLER), grads, votes=votes)
-    assert s.growth_candidates(params, state, state["grad2d"] / state["count"], step=100).nonzero().flatten().tolist() == [2, 3, 4]
+    _set_stats(s, state, params, torch.ones(6 + FILLER), grads, votes=votes)
+    assert s.growth_candidates(params, state, state["grad2d"] / state["count"], step=100).nonzero().flatten().tolist() == [2, 3, 4, 5]
 
 
 def test_what_outside_growth_cannot_offset_is_carried_to_the_next_refinement():

@@ -42,8 +42,10 @@ the opacity reset applied). Inside them:
   of 3–4 per refinement interval on the sparse mountain at 1500 steps) where 3DGS
   averages over every step. A mean of few samples crosses the threshold by chance far
   more often: the sparse mountain grew 100k Gaussians outside its box where 3DGS grew 84k
-  in all. Only Gaussians seen by at least three statistics steps since the last
-  refinement may grow outside (the ledger's ``few_votes`` counts those held back).
+  in all. Outside, the summed gradient is divided by at least three views: a Gaussian
+  seen by one statistics step grows only on three times the threshold (the ledger's
+  ``few_votes`` counts the candidates held back). Holding back every Gaussian seen by
+  fewer than three left large floaters near a camera unsplit (docs/promptgs.md).
 * **Resampled Gaussians earn their keep** (`idle_resampled`): one that is still under
   ``carve_keep_opacity`` (0.05) a refinement interval after it came, and after the last
   opacity reset, is removed at the next refinement, and its cost is paid back to the
@@ -138,7 +140,7 @@ def new_ledger() -> dict[str, Any]:
 class PromptGSStrategy(ResettingDefaultStrategy):
     prompts: list = field(default_factory=list)  # list[PromptBox]
     outside_offset: bool = True  # outside growth gives way to the prompts' extra growth
-    outside_min_votes: int = 3  # statistics steps that must have seen an outside Gaussian before it may grow
+    outside_min_votes: int = 3  # outside, the mean gradient is taken over at least this many views
     protect_steps: int = 500
     carve_error_threshold: float = 0.08  # per-pixel error (mean abs, 0..1) that votes for resampling
     carve_max_candidates: int = 2_000_000  # grid points tried per box; beyond it the grid coarsens
@@ -246,11 +248,12 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             fence = None
         else:
             chosen_in, fence = self.prompt_growth(params, state, inside)
-        outside = rule & ~inside
-        # A mean gradient from a handful of views crosses the threshold by chance far more
-        # often than 3DGS's mean over every step (see outside_min_votes).
-        few_votes = outside & (state["count"] < self.outside_min_votes)
-        outside = outside & ~few_votes
+        # Outside, the mean gradient is taken over at least outside_min_votes views: a mean
+        # of a handful crosses the threshold by chance far more often than 3DGS's mean over
+        # every step, while a gradient large enough still grows on fewer.
+        grads_out = state["grad2d"] / state["count"].clamp_min(max(self.outside_min_votes, 1))
+        outside = (grads_out > self.grow_grad2d) & ~inside
+        few_votes = rule & ~inside & ~outside
         n_out = int(outside.sum())
         # What the prompts add beyond 3DGS's rule: inside growth over what the rule
         # would have grown there, the Gaussians resampled since the last refinement, and
