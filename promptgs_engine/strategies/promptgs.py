@@ -44,8 +44,8 @@ the opacity reset applied). Inside them:
   more often: the sparse mountain grew 100k Gaussians outside its box where 3DGS grew 84k
   in all. Outside, the summed gradient is divided by at least three views: a Gaussian
   seen by one statistics step grows only on three times the threshold (the ledger's
-  ``few_votes`` counts the candidates held back). Holding back every Gaussian seen by
-  fewer than three left large floaters near a camera unsplit (docs/promptgs.md).
+  ``few_votes`` counts the candidates held back); holding back every Gaussian seen by
+  fewer than three, tried first, is harsher (docs/promptgs.md).
 * **Resampled Gaussians earn their keep** (`idle_resampled`): one that is still under
   ``carve_keep_opacity`` (0.05) a refinement interval after it came, and after the last
   opacity reset, is removed at the next refinement, and its cost is paid back to the
