@@ -85,18 +85,6 @@ def check_run(cmd: list[str]) -> str:
     return proc.stdout
 
 
-def knn_rms_distance(points, k: int = 3, chunk: int = 4096):
-    """RMS distance of each point to its ``k`` nearest other points (simple_trainer's init)."""
-    import torch
-
-    out = torch.empty(points.shape[0])
-    for start in range(0, points.shape[0], chunk):
-        d = torch.cdist(points[start : start + chunk], points)
-        nearest = d.topk(k + 1, largest=False).values[:, 1:]  # drop the point itself
-        out[start : start + chunk] = (nearest**2).mean(dim=-1).sqrt()
-    return out
-
-
 def gsplat_worker(dataset: str, images: str, steps: int, seed: int, device: str, sh_interval: int) -> dict:
     """simple_trainer's default training step (see the module docstring), timed."""
     import torch
@@ -105,7 +93,7 @@ def gsplat_worker(dataset: str, images: str, steps: int, seed: int, device: str,
 
     from promptgs_engine.data import load_colmap_scene
     from promptgs_engine.evaluation import evaluate
-    from promptgs_engine.gaussians import num_sh_bases, rgb_to_sh
+    from promptgs_engine.gaussians import nearest_neighbor_distance, num_sh_bases, rgb_to_sh
     from promptgs_engine.losses import photometric_maps
     from promptgs_engine.render import render
     from promptgs_engine.strategies import DefaultSchedule
@@ -125,7 +113,7 @@ def gsplat_worker(dataset: str, images: str, steps: int, seed: int, device: str,
     quats = torch.zeros(n, 4)
     quats[:, 0] = 1.0
     init = {
-        "means": points, "scales": torch.log(knn_rms_distance(points)).unsqueeze(-1).repeat(1, 3), "quats": quats,
+        "means": points, "scales": torch.log(nearest_neighbor_distance(points, rms=True)).unsqueeze(-1).repeat(1, 3), "quats": quats,
         "opacities": torch.logit(torch.full((n,), 0.1)), "sh0": sh[:, :1], "shN": sh[:, 1:],
     }
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.contiguous().to(dev)) for k, v in init.items()})

@@ -44,8 +44,9 @@ def sh_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
     return sh0 * SH_C0 + 0.5
 
 
-def nearest_neighbor_distance(points: torch.Tensor, k: int = 3, chunk: int = 4096) -> torch.Tensor:
-    """Mean distance of each point to its ``k`` nearest other points, [N]."""
+def nearest_neighbor_distance(points: torch.Tensor, k: int = 3, chunk: int = 4096, rms: bool = False) -> torch.Tensor:
+    """Mean distance of each point to its ``k`` nearest other points, [N]; with ``rms``
+    the root mean square of those distances (gsplat's simple_trainer initialisation)."""
     n = points.shape[0]
     k = min(k, max(n - 1, 1))
     out = torch.empty(n, dtype=points.dtype)
@@ -53,7 +54,7 @@ def nearest_neighbor_distance(points: torch.Tensor, k: int = 3, chunk: int = 409
         d = torch.cdist(points[start : start + chunk], points)
         # The smallest distance is the point itself (0); take the next k.
         nearest = d.topk(k + 1, dim=1, largest=False).values[:, 1:]
-        out[start : start + chunk] = nearest.mean(dim=1)
+        out[start : start + chunk] = (nearest**2).mean(dim=1).sqrt() if rms else nearest.mean(dim=1)
     return out
 
 
