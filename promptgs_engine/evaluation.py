@@ -43,9 +43,10 @@ def load_run(run_dir: Path, snapshot: Path | None = None) -> tuple[TrainConfig, 
 
 def on_backend_device(params: torch.nn.ParameterDict, backend: str) -> dict[str, torch.Tensor]:
     """The Gaussians on the device the backend renders on: the GPU for ``cuda``, and for
-    ``auto`` where torch sees one; the CPU otherwise."""
-    use_gpu = backend == "cuda" or (backend == "auto" and torch.cuda.is_available())
-    device = torch.device("cuda" if use_gpu else "cpu")
+    ``auto`` where torch sees one (as the trainer decides); the CPU otherwise."""
+    from .train import resolve_backend  # the trainer's choice of device; train imports this module lazily
+
+    device = torch.device(resolve_backend(backend))
     return {name: value.detach().to(device) for name, value in params.items()}
 
 
