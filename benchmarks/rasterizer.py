@@ -6,7 +6,9 @@ Measures medians over repeated runs after warm-up:
 - ``forward``: ``render()`` under ``torch.no_grad()``;
 - ``forward_backward``: ``render()`` + L1 loss + ``backward()``;
 - ``train_step``: the same plus an Adam step on every parameter (means, quaternions,
-  log-scales, opacity logits, SH coefficients), as the trainer does;
+  log-scales, opacity logits, SH coefficients), as the trainer does: where the build's
+  trainer has them, the SH coefficients go to ``render`` apart (``sh_rest``) and Adam is
+  its fused step on six one-parameter optimisers (``promptgs_engine/adam.py``);
 - the parts of a training step: the C++ entry points (projection and rasterization, forward
   and backward) timed from Python, and, for builds that record them, the C++ stages
   (``_C.stage_times()``: sort, gather, binning, blending, gradient reduction);
@@ -154,12 +156,26 @@ class Step:
     """Parameters, optimiser and the render/loss/backward/step closures of one configuration."""
 
     def __init__(self, scene: dict, view: torch.Tensor, K: torch.Tensor, width: int, height: int, sh_degree: int):
+        import inspect
+
+        from promptgs_engine.render import render
+
         self.params = {k: v.detach().clone().requires_grad_(True) for k, v in scene.items()}
-        # fused=True: torch's single-kernel CPU Adam, about 3x faster than the default here
-        self.opt = torch.optim.Adam(
-            [{"params": [p], "lr": lr} for p, lr in zip(self.params.values(), (1.6e-4, 1e-3, 5e-3, 5e-2, 2.5e-3, 1.25e-4))],
-            fused=True,
-        )
+        # One fused Adam per parameter, as the trainer makes them (train.make_optimizers).
+        self.optimizers = {
+            k: torch.optim.Adam([{"params": [p], "lr": lr}], fused=True)
+            for (k, p), lr in zip(self.params.items(), (1.6e-4, 1e-3, 5e-3, 5e-2, 2.5e-3, 1.25e-4))
+        }
+        # What the build's trainer does where it can: the SH coefficients passed apart
+        # (``sh_rest``) rather than concatenated every step, and its own Adam step
+        # (promptgs_engine/adam.py). An older build gets the concatenation and
+        # ``Optimizer.step``, as its trainer did.
+        self.sh_apart = "sh_rest" in inspect.signature(render).parameters
+        try:
+            from promptgs_engine.adam import fused_adam_step
+        except ImportError:
+            fused_adam_step = None
+        self.fused_adam_step = fused_adam_step
         self.viewmats, self.Ks = view[None], K[None]
         self.width, self.height, self.sh_degree = width, height, sh_degree
         g = torch.Generator().manual_seed(1)
@@ -169,11 +185,22 @@ class Step:
         from promptgs_engine.render import render
 
         p = self.params
-        colors = torch.cat([p["sh0"], p["shN"]], dim=1)
+        if self.sh_apart:
+            colors, extra = p["sh0"], {"sh_rest": p["shN"]}
+        else:
+            colors, extra = torch.cat([p["sh0"], p["shN"]], dim=1), {}
         return render(
             p["means"], p["quats"], torch.exp(p["log_scales"]), torch.sigmoid(p["opacity_logits"]), colors,
-            self.viewmats, self.Ks, self.width, self.height, sh_degree=self.sh_degree, backend="cpu",
+            self.viewmats, self.Ks, self.width, self.height, sh_degree=self.sh_degree, backend="cpu", **extra,
         )
+
+    def adam_step(self) -> None:
+        if self.fused_adam_step is not None:
+            self.fused_adam_step(self.optimizers)  # also sets the gradients to None
+            return
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
 
     def forward(self) -> None:
         with torch.no_grad():
@@ -186,11 +213,10 @@ class Step:
             p.grad = None
 
     def train_step(self) -> None:
-        self.opt.zero_grad(set_to_none=True)
         out, _, info = self.render()
         info["means2d"].retain_grad()  # as the densification strategy does
         (out - self.target).abs().mean().backward()
-        self.opt.step()
+        self.adam_step()
 
     def parts(self) -> dict[str, float]:
         """One training step with the C++ entry points timed, plus the C++ stages where the
@@ -228,8 +254,11 @@ class Step:
             times["train_step"] = time.perf_counter() - t0
         finally:
             cpu_backend._ext = original
+        # Adam alone, on gradients of the same shapes (train_step's own were used up).
+        for p in self.params.values():
+            p.grad = torch.zeros_like(p)
         t0 = time.perf_counter()
-        self.opt.step()
+        self.adam_step()
         times["adam"] = time.perf_counter() - t0
         if hasattr(ext, "stage_times"):
             times.update({f"C++ {k}": v for k, v in ext.stage_times(True).items()})
