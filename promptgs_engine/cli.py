@@ -38,7 +38,7 @@ def _add_train(sub) -> None:
     p.add_argument("--sh-degree", type=int)
     p.add_argument("--budget", type=_budget, help="maximum number of Gaussians, or 'auto': stop growing when added Gaussians stop lowering the loss")
     p.add_argument("--prompts", help="prompt file (JSON boxes in dataset coordinates)")
-    p.add_argument("--center-prompt", action="store_true", default=None, help="one unit box at the origin (the paper's Ours*)")
+    p.add_argument("--center-prompt", action="store_true", default=None, help="one box where the training cameras look, sized from the scene's extent (the paper's Ours*; prompts.scene_center_prompt)")
     p.add_argument("--auto-prompts", type=int, help="add the error field's top N proposals as prompts")
     p.add_argument(
         "--propose-prompts", action="store_true", default=None,

@@ -8,8 +8,8 @@ object masks and recall where the dataset has them), and appends one line to
 cells that already have an ``ok`` line, so an interrupted benchmark resumes where it
 stopped.
 
-Methods: ``3dgs``, ``absgs``, ``promptgs-center`` (one unit box at the origin, the
-paper's Ours*), ``promptgs-1`` (one box: the dataset's ``prompts_1.json``, else one box
+Methods: ``3dgs``, ``absgs``, ``promptgs-center`` (``--center-prompt``: one box where the
+cameras look, sized from the scene's extent; the paper's Ours*), ``promptgs-1`` (one box: the dataset's ``prompts_1.json``, else one box
 around its suggested prompts), ``promptgs-2`` (the dataset's ``prompts_2.json``, else its
 suggested prompts, a box per object group), ``promptgs-auto`` (prompts proposed by the
 error field), ``promptgs-propose`` (no box drawn: prompts proposed where several views
