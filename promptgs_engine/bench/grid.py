@@ -9,11 +9,12 @@ cells that already have an ``ok`` line, so an interrupted benchmark resumes wher
 stopped.
 
 Methods: ``3dgs``, ``absgs``, ``promptgs-center`` (``--center-prompt``: one box where the
-cameras look, sized from the scene's extent; the paper's Ours*), ``promptgs-1`` (one box: the dataset's ``prompts_1.json``, else one box
-around its suggested prompts), ``promptgs-2`` (the dataset's ``prompts_2.json``, else its
-suggested prompts, a box per object group), ``promptgs-auto`` (prompts proposed by the
-error field), ``promptgs-propose`` (no box drawn: prompts proposed where several views
-agree the render misses a small object, ``--propose-prompts``). A prompt method on a scene
+cameras look, sized from the scene's extent; the paper's Ours*), ``promptgs-1`` (one box:
+the dataset's ``prompts_1.json``, else one box around its suggested prompts),
+``promptgs-2`` (the dataset's ``prompts_2.json``, else its suggested prompts, a box per
+object group), ``promptgs-auto`` (prompts proposed by the error field),
+``promptgs-propose`` (no box drawn: prompts proposed where several views agree the render
+misses a small object, ``--propose-prompts``). A prompt method on a scene
 without those prompts is not applicable and is skipped with a note. Any method with
 ``+compact`` appended (``3dgs+compact``, ``promptgs-1+compact``) trains with ``--compact``.
 
