@@ -7,6 +7,7 @@
 // architectures get one variant for the build's own target.
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 
 #include "rasterize.h"
@@ -93,9 +94,13 @@ const TileKernels& tile_kernels() {
     static_assert(kMaxChannelsFixed == 5, "update PROMPTGS_KERNEL_TABLE");
     static const TileKernels chosen = [] {
 #ifdef PROMPTGS_X86_VARIANTS
+        // PROMPTGS_SIMD=avx2 or sse2 caps the level below what the CPU supports (tests run
+        // every variant's kernels this way on one machine); anything else is ignored.
+        const char* cap = std::getenv("PROMPTGS_SIMD");
+        const int max_level = !cap ? 4 : std::strcmp(cap, "sse2") == 0 ? 2 : std::strcmp(cap, "avx2") == 0 ? 3 : 4;
         __builtin_cpu_init();
-        if (__builtin_cpu_supports("x86-64-v4")) return PROMPTGS_KERNEL_TABLE(kernels_avx512, "avx512");
-        if (__builtin_cpu_supports("x86-64-v3")) return PROMPTGS_KERNEL_TABLE(kernels_avx2, "avx2");
+        if (max_level >= 4 && __builtin_cpu_supports("x86-64-v4")) return PROMPTGS_KERNEL_TABLE(kernels_avx512, "avx512");
+        if (max_level >= 3 && __builtin_cpu_supports("x86-64-v3")) return PROMPTGS_KERNEL_TABLE(kernels_avx2, "avx2");
         return PROMPTGS_KERNEL_TABLE(kernels_sse2, "sse2");
 #else
         return PROMPTGS_KERNEL_TABLE(kernels_native, "native");
