@@ -141,12 +141,13 @@ struct TileKernels {
     // Composites tile (x0, y0) from ranks ids[start, end).
     using Forward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int end, int x0,
                              int y0, TileScratch& scratch);
-    // Backward for tile (x0, y0); scratch dcol and buf are D*256 floats, vcol D*16 floats;
-    // adds per-rank gradients into G (stride kGradFixed + D).
+    // Backward for tile (x0, y0); scratch dcol is D*256 floats, vcol D*16 floats; adds
+    // per-rank gradients into G (stride kGradFixed + D). backward_abs also sums |dL/dmean2d|.
     using Backward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int x0, int y0,
-                              float* dcol, float* buf, float* vcol, float* G);
+                              float* dcol, float* vcol, float* G);
     Forward forward[kMaxChannelsFixed + 1];
     Backward backward[kMaxChannelsFixed + 1];
+    Backward backward_abs[kMaxChannelsFixed + 1];
     const char* name;
 };
 const TileKernels& tile_kernels();

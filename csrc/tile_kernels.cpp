@@ -79,13 +79,15 @@ namespace promptgs {
 
 namespace {
 
-#define PROMPTGS_KERNEL_TABLE(NS, NAME)                                                                  \
-    TileKernels {                                                                                         \
-        {NS::forward_tile<0>, NS::forward_tile<1>, NS::forward_tile<2>, NS::forward_tile<3>,              \
-         NS::forward_tile<4>, NS::forward_tile<5>},                                                       \
-            {NS::backward_tile<0>, NS::backward_tile<1>, NS::backward_tile<2>, NS::backward_tile<3>,      \
-             NS::backward_tile<4>, NS::backward_tile<5>},                                                 \
-            NAME                                                                                          \
+#define PROMPTGS_KERNEL_TABLE(NS, NAME)                                                                        \
+    TileKernels {                                                                                               \
+        {NS::forward_tile<0>, NS::forward_tile<1>, NS::forward_tile<2>, NS::forward_tile<3>,                    \
+         NS::forward_tile<4>, NS::forward_tile<5>},                                                             \
+            {NS::backward_tile<0, false>, NS::backward_tile<1, false>, NS::backward_tile<2, false>,             \
+             NS::backward_tile<3, false>, NS::backward_tile<4, false>, NS::backward_tile<5, false>},            \
+            {NS::backward_tile<0, true>, NS::backward_tile<1, true>, NS::backward_tile<2, true>,                \
+             NS::backward_tile<3, true>, NS::backward_tile<4, true>, NS::backward_tile<5, true>},               \
+            NAME                                                                                                \
     }
 
 }  // namespace
