@@ -12,6 +12,7 @@
 #include <string>
 
 #include "project.h"
+#include "kernels.h"
 #include "rasterize.h"
 #include "ssim.h"
 #include "stage_times.h"
@@ -350,6 +351,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("ssim_backward", &ssim_bwd,
           "dL/dimg from (dL/dssim, partials, img, ref, window) of ssim_forward.");
     m.def("num_threads", &num_threads, "OpenMP threads the rasterizer uses.");
-    m.def("simd_variant", [] { return std::string(promptgs::tile_kernels().name); },
+    m.def("simd_variant", [] { return std::string(promptgs::kernels().name); },
           "Instruction set of the tile kernels picked for this CPU (avx512, avx2, sse2 or native).");
 }

@@ -131,26 +131,9 @@ struct TileScratch {
     }
 };
 
-// Per-tile kernels for one instruction set, picked once at load time from what the CPU
-// supports (AVX-512, AVX2+FMA or the baseline; see tile_kernels.cpp).
-//
-// Entry c of forward/backward is specialised for c channels (c = 1..kMaxChannelsFixed);
-// entry 0 takes any channel count. Use kernel_for() to pick.
+// Per-tile kernels come in one version per channel count c = 1..kMaxChannelsFixed (loops
+// over channels unrolled, accumulators in registers) and one for any count (kernels.h).
 constexpr int kMaxChannelsFixed = 5;
-struct TileKernels {
-    // Composites tile (x0, y0) from ranks ids[start, end).
-    using Forward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int end, int x0,
-                             int y0, TileScratch& scratch);
-    // Backward for tile (x0, y0); scratch dcol is D*256 floats, vcol D*16 floats; adds
-    // per-rank gradients into G (stride kGradFixed + D). backward_abs also sums |dL/dmean2d|.
-    using Backward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int x0, int y0,
-                              float* dcol, float* vcol, float* G);
-    Forward forward[kMaxChannelsFixed + 1];
-    Backward backward[kMaxChannelsFixed + 1];
-    Backward backward_abs[kMaxChannelsFixed + 1];
-    const char* name;
-};
-const TileKernels& tile_kernels();
 inline int kernel_for(int64_t channels) { return channels <= kMaxChannelsFixed ? static_cast<int>(channels) : 0; }
 
 // Inputs of one image. Arrays are float32 / int32, contiguous, N rows.

@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "kernels.h"
 #include "rasterize.h"
 #include "stage_times.h"
 
@@ -41,8 +42,8 @@ void rasterize_backward(const RasterInputs& in, const TileBinsView& bins, const 
     args.rows = rows;
     args.grad_colors = grad_colors;
     args.grad_alphas = grad_alphas;
-    const TileKernels::Backward backward =
-        grad_abs_means2d ? tile_kernels().backward_abs[kernel_for(D)] : tile_kernels().backward[kernel_for(D)];
+    const Kernels::Backward backward =
+        grad_abs_means2d ? kernels().backward_abs[kernel_for(D)] : kernels().backward[kernel_for(D)];
 
     StageTimer blend_timer(kStageBlendBackward);
 #pragma omp parallel num_threads(n_threads)

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "kernels.h"
 #include "rasterize.h"
 #include "stage_times.h"
 
@@ -226,7 +227,7 @@ void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_
     args.out_alphas = out_alphas;
     args.out_last = last_ids;
     args.out_rows = rows;
-    const TileKernels::Forward forward = tile_kernels().forward[kernel_for(in.d)];
+    const Kernels::Forward forward = kernels().forward[kernel_for(in.d)];
     StageTimer timer(kStageBlendForward);
 #pragma omp parallel
     {

@@ -1,4 +1,4 @@
-"""The CPU rasterizer's kernels are compiled for several x86-64 instruction set levels and the
+"""The CPU backend's kernels (rasterizer and projection) are compiled for several x86-64 instruction set levels and the
 best one the CPU supports is picked at load time, so a machine with AVX-512 would never run
 the AVX2 or SSE2 kernels that most other machines use. PROMPTGS_SIMD caps the level: these
 tests run the parity checks of test_render_cpu.py once per lower level, in a subprocess."""
@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 TESTS = Path(__file__).resolve().parent
-PARITY = "features or dense_opaque or thin_slanted or absgrad"
+PARITY = ("features or sh_two_cameras or sh_rest_apart or dense_opaque or thin_slanted or absgrad or "
+          "projection_matches or sh_matches or culling")
 
 
 def variant_under(level: str) -> str:

@@ -1,5 +1,6 @@
-// The per-tile kernels (tile_kernels.inc) compiled once per x86-64 instruction set level,
-// and the choice among them for the running CPU.
+// The CPU backend's vectorised kernels (kernel_set.inc: the rasterizer's per-tile passes and
+// the projection) compiled once per x86-64 instruction set level, and the choice among them
+// for the running CPU.
 //
 // GCC compiles vector-extension code for the target of the enclosing function, so each
 // variant sits under its own `#pragma GCC target` with a vector width that the level
@@ -10,7 +11,7 @@
 #include <cstdlib>
 #include <cstring>
 
-#include "rasterize.h"
+#include "kernels.h"
 
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
 #define PROMPTGS_X86_VARIANTS 1
@@ -29,9 +30,7 @@
 #pragma GCC target("arch=x86-64-v4")
 #define PROMPTGS_NS kernels_avx512
 #define PROMPTGS_VW 16
-namespace promptgs {
-#include "tile_kernels.inc"
-}
+#include "kernel_set.inc"
 #undef PROMPTGS_NS
 #undef PROMPTGS_VW
 #pragma GCC pop_options
@@ -40,18 +39,14 @@ namespace promptgs {
 #pragma GCC target("arch=x86-64-v3")
 #define PROMPTGS_NS kernels_avx2
 #define PROMPTGS_VW 8
-namespace promptgs {
-#include "tile_kernels.inc"
-}
+#include "kernel_set.inc"
 #undef PROMPTGS_NS
 #undef PROMPTGS_VW
 #pragma GCC pop_options
 
 #define PROMPTGS_NS kernels_sse2
 #define PROMPTGS_VW 4
-namespace promptgs {
-#include "tile_kernels.inc"
-}
+#include "kernel_set.inc"
 #undef PROMPTGS_NS
 #undef PROMPTGS_VW
 
@@ -67,9 +62,7 @@ namespace promptgs {
 #define PROMPTGS_VW 4
 #endif
 #define PROMPTGS_NS kernels_native
-namespace promptgs {
-#include "tile_kernels.inc"
-}
+#include "kernel_set.inc"
 #undef PROMPTGS_NS
 #undef PROMPTGS_VW
 
@@ -80,21 +73,21 @@ namespace promptgs {
 namespace {
 
 #define PROMPTGS_KERNEL_TABLE(NS, NAME)                                                                        \
-    TileKernels {                                                                                               \
+    Kernels {                                                                                                   \
         {NS::forward_tile<0>, NS::forward_tile<1>, NS::forward_tile<2>, NS::forward_tile<3>,                    \
          NS::forward_tile<4>, NS::forward_tile<5>},                                                             \
             {NS::backward_tile<0, false>, NS::backward_tile<1, false>, NS::backward_tile<2, false>,             \
              NS::backward_tile<3, false>, NS::backward_tile<4, false>, NS::backward_tile<5, false>},            \
             {NS::backward_tile<0, true>, NS::backward_tile<1, true>, NS::backward_tile<2, true>,                \
              NS::backward_tile<3, true>, NS::backward_tile<4, true>, NS::backward_tile<5, true>},               \
-            NAME                                                                                                \
+            NS::project_forward_range, NS::project_backward_range, NAME                                         \
     }
 
 }  // namespace
 
-const TileKernels& tile_kernels() {
+const Kernels& kernels() {
     static_assert(kMaxChannelsFixed == 5, "update PROMPTGS_KERNEL_TABLE");
-    static const TileKernels chosen = [] {
+    static const Kernels chosen = [] {
 #ifdef PROMPTGS_X86_VARIANTS
         // PROMPTGS_SIMD=avx2 or sse2 caps the level below what the CPU supports (tests run
         // every variant's kernels this way on one machine); anything else is ignored.

@@ -1,0 +1,39 @@
+// The vectorised kernels of the CPU backend for one instruction set, picked once at load time
+// from what the CPU supports (AVX-512, AVX2+FMA or the baseline SSE2; see kernels.cpp):
+// the rasterizer's per-tile passes (tile_kernels.inc) and the projection of Gaussians
+// (project_kernels.inc).
+#pragma once
+
+#include "project.h"
+#include "rasterize.h"
+
+namespace promptgs {
+
+struct Kernels {
+    // Composites tile (x0, y0) from ranks ids[start, end).
+    using Forward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int end, int x0,
+                             int y0, TileScratch& scratch);
+    // Backward for tile (x0, y0); scratch dcol is D*256 floats, vcol D*16 floats; adds
+    // per-rank gradients into G (stride kGradFixed + D). backward_abs also sums |dL/dmean2d|.
+    using Backward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int x0, int y0,
+                              float* dcol, float* vcol, float* G);
+    // Projection of Gaussians [begin, end) (see project.h for the outputs).
+    using ProjectForward = void (*)(const ProjectInputs& in, const Camera& cam, const float campos[3], int64_t begin,
+                                    int64_t end, float* means2d, float* conics, float* depths, int32_t* radii,
+                                    float* colors);
+    using ProjectBackward = void (*)(const ProjectInputs& in, const Camera& cam, const float campos[3], int64_t begin,
+                                     int64_t end, const int32_t* radii, const float* v_means2d, const float* v_conics,
+                                     const float* v_depths, const float* v_colors, float* v_means, float* v_quats,
+                                     float* v_scales, float* v_sh, float* v_sh_rest);
+    // Entry c of forward/backward is specialised for c channels (c = 1..kMaxChannelsFixed);
+    // entry 0 takes any channel count. Use kernel_for() to pick.
+    Forward forward[kMaxChannelsFixed + 1];
+    Backward backward[kMaxChannelsFixed + 1];
+    Backward backward_abs[kMaxChannelsFixed + 1];
+    ProjectForward project_forward;
+    ProjectBackward project_backward;
+    const char* name;
+};
+const Kernels& kernels();
+
+}  // namespace promptgs
