@@ -1,5 +1,5 @@
-// The CPU backend's vectorised kernels (kernel_set.inc: the rasterizer's per-tile passes and
-// the projection) compiled once per x86-64 instruction set level, and the choice among them
+// The CPU backend's vectorised kernels (kernel_set.inc: the rasterizer's per-tile passes,
+// the projection and SSIM) compiled once per x86-64 instruction set level, and the choice among them
 // for the running CPU.
 //
 // GCC compiles vector-extension code for the target of the enclosing function, so each
@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
+#include <vector>
 
 #include "kernels.h"
 
@@ -80,7 +81,8 @@ namespace {
              NS::backward_tile<3, false>, NS::backward_tile<4, false>, NS::backward_tile<5, false>},            \
             {NS::backward_tile<0, true>, NS::backward_tile<1, true>, NS::backward_tile<2, true>,                \
              NS::backward_tile<3, true>, NS::backward_tile<4, true>, NS::backward_tile<5, true>},               \
-            NS::project_forward_range, NS::project_backward_range, NAME                                         \
+            NS::project_forward_range, NS::project_backward_range, NS::ssim_forward_band,                       \
+            NS::ssim_backward_band, NAME                                                                        \
     }
 
 }  // namespace

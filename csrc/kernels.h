@@ -1,11 +1,12 @@
 // The vectorised kernels of the CPU backend for one instruction set, picked once at load time
 // from what the CPU supports (AVX-512, AVX2+FMA or the baseline SSE2; see kernels.cpp):
-// the rasterizer's per-tile passes (tile_kernels.inc) and the projection of Gaussians
-// (project_kernels.inc).
+// the rasterizer's per-tile passes (tile_kernels.inc), the projection of Gaussians
+// (project_kernels.inc) and SSIM (ssim_kernels.inc).
 #pragma once
 
 #include "project.h"
 #include "rasterize.h"
+#include "ssim.h"
 
 namespace promptgs {
 
@@ -25,6 +26,12 @@ struct Kernels {
                                      int64_t end, const int32_t* radii, const float* v_means2d, const float* v_conics,
                                      const float* v_depths, const float* v_colors, float* v_means, float* v_quats,
                                      float* v_scales, float* v_sh, float* v_sh_rest);
+    // SSIM of output rows [o0, o1) of one image (see ssim_kernels.inc).
+    using SsimForwardBand = void (*)(const SsimShape& s, const float* x, const float* y, const float* w, int o0, int o1,
+                                     float* value, float* p0, float* p1, float* p2);
+    using SsimBackwardBand = void (*)(const SsimShape& s, const float* g, const float* p0, const float* p1,
+                                      const float* p2, const float* x, const float* y, const float* w, int o0, int o1,
+                                      float* grad);
     // Entry c of forward/backward is specialised for c channels (c = 1..kMaxChannelsFixed);
     // entry 0 takes any channel count. Use kernel_for() to pick.
     Forward forward[kMaxChannelsFixed + 1];
@@ -32,6 +39,8 @@ struct Kernels {
     Backward backward_abs[kMaxChannelsFixed + 1];
     ProjectForward project_forward;
     ProjectBackward project_backward;
+    SsimForwardBand ssim_forward_band;
+    SsimBackwardBand ssim_backward_band;
     const char* name;
 };
 const Kernels& kernels();
