@@ -16,7 +16,7 @@ import pytest
 TESTS = Path(__file__).resolve().parent
 PARITY_FILES = ("test_render_cpu.py", "test_losses_metrics.py")
 PARITY = ("features or sh_two_cameras or sh_rest_apart or dense_opaque or thin_slanted or absgrad or "
-          "projection_matches or sh_matches or culling or fused_cpu_ssim or fused_photometric")
+          "projection_matches or sh_matches or culling or large_gaussians or fused_cpu_ssim or fused_photometric")
 
 
 def variant_under(level: str) -> str:
