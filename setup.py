@@ -23,7 +23,7 @@ setup(
                 "csrc/bindings.cpp",
                 "csrc/rasterize_forward.cpp",
                 "csrc/rasterize_backward.cpp",
-                "csrc/tile_kernels.cpp",
+                "csrc/kernels.cpp",
                 "csrc/project.cpp",
                 "csrc/ssim.cpp",
             ],

@@ -76,11 +76,10 @@ def point(size: str, n: int, repeats: int, warmup: int) -> dict:
         return dt
 
     def train_step():
-        step.opt.zero_grad(set_to_none=True)
         out, _, info = step.render()
         info["means2d"].retain_grad()
         loss_of(out).backward()
-        step.opt.step()
+        step.adam_step()  # the trainer's Adam; also sets the gradients to None
 
     def clock(fn) -> tuple[float, float]:
         t0, c0 = time.perf_counter(), time.process_time()

@@ -12,6 +12,7 @@
 #include <string>
 
 #include "project.h"
+#include "kernels.h"
 #include "rasterize.h"
 #include "ssim.h"
 #include "stage_times.h"
@@ -288,7 +289,8 @@ std::vector<Tensor> ssim_fwd(Tensor img, Tensor ref, Tensor window, bool need_gr
     const promptgs::SsimShape s = ssim_shape(img, ref, window);
     auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
     Tensor ssim = torch::empty_like(img);
-    Tensor partials = need_grad ? torch::empty({3, s.batch * s.channels, s.height, s.width}, f32) : torch::empty({0}, f32);
+    Tensor partials =
+        need_grad ? torch::empty({3, s.batch, s.height, s.width, s.channels}, f32) : torch::empty({0}, f32);
     {
         pybind11::gil_scoped_release no_gil;
         promptgs::ssim_forward(s, img.data_ptr<float>(), ref.data_ptr<float>(), window.data_ptr<float>(),
@@ -300,7 +302,7 @@ std::vector<Tensor> ssim_fwd(Tensor img, Tensor ref, Tensor window, bool need_gr
 Tensor ssim_bwd(Tensor grad, Tensor partials, Tensor img, Tensor ref, Tensor window) {
     const promptgs::SsimShape s = ssim_shape(img, ref, window);
     check(grad, "grad", torch::kFloat32, {s.batch, s.height, s.width, s.channels});
-    check(partials, "partials", torch::kFloat32, {3, s.batch * s.channels, s.height, s.width});
+    check(partials, "partials", torch::kFloat32, {3, s.batch, s.height, s.width, s.channels});
     Tensor grad_img = torch::empty_like(img);
     {
         pybind11::gil_scoped_release no_gil;
@@ -350,6 +352,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.def("ssim_backward", &ssim_bwd,
           "dL/dimg from (dL/dssim, partials, img, ref, window) of ssim_forward.");
     m.def("num_threads", &num_threads, "OpenMP threads the rasterizer uses.");
-    m.def("simd_variant", [] { return std::string(promptgs::tile_kernels().name); },
+    m.def("simd_variant", [] { return std::string(promptgs::kernels().name); },
           "Instruction set of the tile kernels picked for this CPU (avx512, avx2, sse2 or native).");
 }

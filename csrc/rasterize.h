@@ -106,40 +106,34 @@ constexpr int kGradFixed = 8;
 struct TileScratch {
     std::vector<Splat> splats;      // the tile's Gaussians in list order
     std::vector<float> colors;      // [n, D] their colours
+    std::vector<float> ys, rys;     // [n] their mean2d y and Splat::ry, for the row masks
+    std::vector<float> half_a;      // [n] 0.5 * conic a
+    std::vector<float> row_terms;   // [n, 2, kTile] per tile row: b dy and 0.5 c dy^2 (dy = y - row centre)
     std::vector<uint16_t> masks;    // [n] tile rows each one reaches
-    std::vector<int32_t> row_list;  // per tile row, the list positions of those reaching it
+    std::vector<int32_t> row_list;  // [kTile, row_stride] per tile row, the list positions of those reaching it
+    int row_stride = 0;             // room per row: the list length plus a vector of slack
     std::vector<float> acc;         // D * kTile floats (colour sums for any channel count)
     void reserve(int n, int64_t d) {
         const size_t un = static_cast<size_t>(n);
         if (splats.size() < un) {
+            const size_t padded = (un + 15) / 16 * 16;  // whole vectors for the row-mask loop
             splats.resize(un);
-            masks.resize(un);
-            row_list.resize(un * kTile);
+            ys.resize(padded);
+            rys.resize(padded);
+            half_a.resize(un);
+            row_terms.resize(un * 2 * kTile);
+            masks.resize(padded);
+            row_stride = static_cast<int>(padded) + 16;
+            row_list.resize(static_cast<size_t>(row_stride) * kTile);
         }
         if (colors.size() < un * static_cast<size_t>(d)) colors.resize(un * static_cast<size_t>(d));
         if (acc.size() < static_cast<size_t>(d) * kTile) acc.resize(static_cast<size_t>(d) * kTile);
     }
 };
 
-// Per-tile kernels for one instruction set, picked once at load time from what the CPU
-// supports (AVX-512, AVX2+FMA or the baseline; see tile_kernels.cpp).
-//
-// Entry c of forward/backward is specialised for c channels (c = 1..kMaxChannelsFixed);
-// entry 0 takes any channel count. Use kernel_for() to pick.
+// Per-tile kernels come in one version per channel count c = 1..kMaxChannelsFixed (loops
+// over channels unrolled, accumulators in registers) and one for any count (kernels.h).
 constexpr int kMaxChannelsFixed = 5;
-struct TileKernels {
-    // Composites tile (x0, y0) from ranks ids[start, end).
-    using Forward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int end, int x0,
-                             int y0, TileScratch& scratch);
-    // Backward for tile (x0, y0); scratch dcol and buf are D*256 floats, vcol D*16 floats;
-    // adds per-rank gradients into G (stride kGradFixed + D).
-    using Backward = void (*)(const TileArgs& a, const Splat* splats, const float* colors, int start, int x0, int y0,
-                              float* dcol, float* buf, float* vcol, float* G);
-    Forward forward[kMaxChannelsFixed + 1];
-    Backward backward[kMaxChannelsFixed + 1];
-    const char* name;
-};
-const TileKernels& tile_kernels();
 inline int kernel_for(int64_t channels) { return channels <= kMaxChannelsFixed ? static_cast<int>(channels) : 0; }
 
 // Inputs of one image. Arrays are float32 / int32, contiguous, N rows.

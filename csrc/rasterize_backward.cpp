@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "kernels.h"
 #include "rasterize.h"
 #include "stage_times.h"
 
@@ -41,7 +42,8 @@ void rasterize_backward(const RasterInputs& in, const TileBinsView& bins, const 
     args.rows = rows;
     args.grad_colors = grad_colors;
     args.grad_alphas = grad_alphas;
-    const TileKernels::Backward backward = tile_kernels().backward[kernel_for(D)];
+    const Kernels::Backward backward =
+        grad_abs_means2d ? kernels().backward_abs[kernel_for(D)] : kernels().backward[kernel_for(D)];
 
     StageTimer blend_timer(kStageBlendBackward);
 #pragma omp parallel num_threads(n_threads)
@@ -49,14 +51,13 @@ void rasterize_backward(const RasterInputs& in, const TileBinsView& bins, const 
         std::vector<float>& gbuf = thread_grads[omp_get_thread_num()];
         gbuf.assign(static_cast<size_t>(M * stride), 0.f);
         std::vector<float> dcol(static_cast<size_t>(D) * kTilePixels);
-        std::vector<float> buf(static_cast<size_t>(D) * kTilePixels);
         std::vector<float> vcol(static_cast<size_t>(D) * kTile);  // D * (lanes <= 16)
 #pragma omp for schedule(static, 1)
         for (int tile = 0; tile < n_tiles; ++tile) {
             const int start = bins.offsets[tile], end = bins.offsets[tile + 1];
             if (start == end) continue;
             backward(args, bins.splats, bins.colors, start, (tile % bins.tiles_x) * kTile,
-                             (tile / bins.tiles_x) * kTile, dcol.data(), buf.data(), vcol.data(), gbuf.data());
+                             (tile / bins.tiles_x) * kTile, dcol.data(), vcol.data(), gbuf.data());
         }
     }
     blend_timer.stop();

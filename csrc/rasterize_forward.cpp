@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "kernels.h"
 #include "rasterize.h"
 #include "stage_times.h"
 
@@ -144,26 +145,25 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
     }
     gather_timer.stop();
 
-    // 4. Tile lists. One pass finds the (tile, rank) pairs of each thread's contiguous slice
-    // of the depth order (a Gaussian whose box spans several tiles gets, per tile row, only
+    // 4. Tile lists. The depth order is cut into chunks (several per thread: near Gaussians
+    // reach more tiles, so equal slices are not equal work). One pass finds each chunk's
+    // (tile, rank) pairs (a Gaussian whose box spans several tiles gets, per tile row, only
     // the tiles its ellipse reaches) and counts them per tile; the pairs are then scattered,
-    // each thread's after those of the threads before it in every tile.
+    // each chunk's after those of the chunks before it in every tile, so every tile list
+    // keeps the depth order whichever thread made which chunk.
     StageTimer bin_timer(kStageBin);
-    const int n_threads = omp_get_max_threads();
-    std::vector<std::vector<int32_t>> counts(n_threads);
-    std::vector<std::vector<int32_t>> pair_tiles(n_threads), pair_ranks(n_threads);
+    const int n_chunks = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(m / 256, 4 * omp_get_max_threads())));
+    std::vector<std::vector<int32_t>> counts(n_chunks), pair_tiles(n_chunks), pair_ranks(n_chunks);
     bins.offsets.assign(n_tiles + 1, 0);
-#pragma omp parallel num_threads(n_threads)
-    {
-        const int tid = omp_get_thread_num();
-        const int nt = omp_get_num_threads();
-        const int64_t j0 = m * tid / nt, j1 = m * (tid + 1) / nt;
-        std::vector<int32_t>& cnt = counts[tid];
-        std::vector<int32_t>& tiles = pair_tiles[tid];
-        std::vector<int32_t>& ranks = pair_ranks[tid];
+#pragma omp parallel for schedule(dynamic, 1)
+    for (int chunk = 0; chunk < n_chunks; ++chunk) {
+        const int64_t j0 = m * chunk / n_chunks, j1 = m * (chunk + 1) / n_chunks;
+        std::vector<int32_t>& cnt = counts[chunk];
+        std::vector<int32_t>& tiles = pair_tiles[chunk];
+        std::vector<int32_t>& ranks = pair_ranks[chunk];
         cnt.assign(n_tiles, 0);
-        tiles.reserve(static_cast<size_t>(3 * (j1 - j0)));
-        ranks.reserve(static_cast<size_t>(3 * (j1 - j0)));
+        tiles.reserve(static_cast<size_t>(4 * (j1 - j0)));
+        ranks.reserve(static_cast<size_t>(4 * (j1 - j0)));
         auto emit = [&](int tile, int64_t j) {
             cnt[tile]++;
             tiles.push_back(tile);
@@ -192,22 +192,24 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
                 for (int tx = tx0; tx <= tx1 && k0 <= k1; ++tx) emit(ty * bins.tiles_x + tx, j);
             }
         }
-#pragma omp barrier
-#pragma omp single
-        {
-            int32_t total = 0;
-            for (int t = 0; t < n_tiles; ++t) {
-                bins.offsets[t] = total;
-                for (int k = 0; k < nt; ++k) {
-                    const int32_t c = counts[k][t];
-                    counts[k][t] = total;  // becomes thread k's write cursor in tile t
-                    total += c;
-                }
-            }
-            bins.offsets[n_tiles] = total;
-            bins.ids.resize(static_cast<size_t>(total));
+    }
+    int32_t total = 0;
+    for (int t = 0; t < n_tiles; ++t) {
+        bins.offsets[t] = total;
+        for (int k = 0; k < n_chunks; ++k) {
+            const int32_t c = counts[k][t];
+            counts[k][t] = total;  // becomes chunk k's write cursor in tile t
+            total += c;
         }
-        for (size_t p = 0; p < tiles.size(); ++p) bins.ids[cnt[tiles[p]]++] = ranks[p];
+    }
+    bins.offsets[n_tiles] = total;
+    bins.ids.resize(static_cast<size_t>(total));
+#pragma omp parallel for schedule(dynamic, 1)
+    for (int chunk = 0; chunk < n_chunks; ++chunk) {
+        std::vector<int32_t>& cursor = counts[chunk];
+        const std::vector<int32_t>& tiles = pair_tiles[chunk];
+        const std::vector<int32_t>& ranks = pair_ranks[chunk];
+        for (size_t p = 0; p < tiles.size(); ++p) bins.ids[cursor[tiles[p]]++] = ranks[p];
     }
     bins.order = std::move(order);
     return bins;
@@ -226,7 +228,7 @@ void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_
     args.out_alphas = out_alphas;
     args.out_last = last_ids;
     args.out_rows = rows;
-    const TileKernels::Forward forward = tile_kernels().forward[kernel_for(in.d)];
+    const Kernels::Forward forward = kernels().forward[kernel_for(in.d)];
     StageTimer timer(kStageBlendForward);
 #pragma omp parallel
     {

@@ -16,8 +16,8 @@ struct SsimShape {
     int radius;                              // window of 2 * radius + 1 taps
 };
 
-// ssim [B,H,W,C]; when partials is not null, also dSSIM/d(mu_x, E[x^2], E[xy]) per pixel,
-// planar [3][B*C][H][W], for ssim_backward.
+// ssim [B,H,W,C]; when partials is not null, also dSSIM/d(mu_x, E[x^2], E[xy]) per pixel and
+// channel, [3][B,H,W,C], for ssim_backward.
 void ssim_forward(const SsimShape& s, const float* img, const float* ref, const float* window, float* ssim,
                   float* partials);
 

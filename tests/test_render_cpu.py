@@ -225,6 +225,73 @@ def test_no_background_and_dense_opaque_scene():
         assert (a - b).abs().max() <= 5e-4 * b.abs().max() + 1e-6
 
 
+def test_thin_slanted_gaussians_that_graze_tile_corners():
+    """Wire-like Gaussians (long, thin, slanted, some faint) crossing the 16-pixel tiles at
+    every angle: the rasterizer drops the tile rows whose slice of the ellipse misses the
+    tile's columns, and a row dropped wrongly would leave a gap in the line. Image and
+    gradients against the reference, on a 64x48 image (12 tiles)."""
+    n, width, height = 120, 64, 48
+    g = torch.Generator().manual_seed(7)
+    angle = torch.rand(n, generator=g, dtype=torch.float64) * torch.pi
+    means = torch.stack([(torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 3.2,
+                         (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 2.4,
+                         torch.full((n,), 3.0, dtype=torch.float64)], -1)
+    quats = torch.stack([torch.cos(angle / 2), torch.zeros(n, dtype=torch.float64),
+                         torch.zeros(n, dtype=torch.float64), torch.sin(angle / 2)], -1)  # about the view axis
+    scales = torch.stack([torch.rand(n, generator=g, dtype=torch.float64) * 0.6 + 0.2,
+                          torch.rand(n, generator=g, dtype=torch.float64) * 0.01 + 0.004,
+                          torch.full((n,), 0.01, dtype=torch.float64)], -1)
+    opacities = torch.rand(n, generator=g, dtype=torch.float64) * 0.95 + 0.02
+    colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    Ks = torch.tensor([[[60.0, 0.0, width / 2 + 0.37], [0.0, 60.0, height / 2 - 0.21], [0.0, 0.0, 1.0]]],
+                      dtype=torch.float64)
+    weights = torch.randn(1, height, width, 3, generator=g, dtype=torch.float64)
+    outs = []
+    for dtype, fn in ((torch.float32, render), (torch.float64, render_reference)):
+        params = [t.detach().clone().to(dtype).requires_grad_() for t in (means, quats, scales, opacities, colors)]
+        kw = {"backend": "cpu"} if fn is render else {}
+        out, alpha, _ = fn(*params, torch.eye(4, dtype=dtype)[None], Ks.to(dtype), width, height, **kw)
+        ((out * weights.to(dtype)).sum() + alpha.sum()).backward()
+        outs.append((out.detach().double(), alpha.detach().double(), [p.grad.double() for p in params]))
+    (cpu_img, cpu_alpha, cpu_grads), (ref_img, ref_alpha, ref_grads) = outs
+    assert ((ref_alpha > 0.02) & (ref_alpha < 0.9)).sum() > 300  # many partly covered pixels along the lines
+    # float32 against float64 on conics of thin Gaussians; a wrongly dropped row would miss
+    # at least 1/255 of alpha at some pixel
+    assert (cpu_img - ref_img).abs().max() < 5e-5
+    assert (cpu_alpha - ref_alpha).abs().max() < 5e-5
+    for a, b in zip(cpu_grads, ref_grads):  # the conics of thin Gaussians cost float32 a digit
+        assert (a - b).abs().max() <= 1e-3 * b.abs().max() + 1e-6
+
+
+def test_large_gaussians_gradients_match_the_reference():
+    """Gaussians 50-150 pixels across, elongated and overlapping, on a 256x192 image: the
+    backward forms a Gaussian's conic and mean gradients from sums over its pixels, where
+    large footprints add many terms of both signs, so its float32 error is checked against
+    the float64 reference more tightly than the general parity tests do."""
+    n, width, height = 40, 256, 192
+    g = torch.Generator().manual_seed(3)
+    means = torch.stack([(torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 2,
+                         (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 1.5,
+                         torch.rand(n, generator=g, dtype=torch.float64) * 2 + 2], -1)
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    scales = torch.rand(n, 3, generator=g, dtype=torch.float64) * 0.5 + 0.05
+    scales[:, 0] *= 3
+    opacities = torch.rand(n, generator=g, dtype=torch.float64) * 0.9 + 0.05
+    colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    Ks = torch.tensor([[[200.0, 0.0, width / 2], [0.0, 200.0, height / 2], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    weights = torch.randn(1, height, width, 3, generator=g, dtype=torch.float64)
+    grads = []
+    for dtype, fn in ((torch.float32, render), (torch.float64, render_reference)):
+        params = [t.detach().clone().to(dtype).requires_grad_() for t in (means, quats, scales, opacities, colors)]
+        kw = {"backend": "cpu"} if fn is render else {}
+        out, alpha, info = fn(*params, torch.eye(4, dtype=dtype)[None], Ks.to(dtype), width, height, **kw)
+        info["means2d"].retain_grad()
+        ((out * weights.to(dtype)).sum() + alpha.sum()).backward()
+        grads.append([p.grad.double() for p in params] + [info["means2d"].grad.double()])
+    for name, a, b, rtol in zip(GRAD_NAMES, *grads, (2e-5, 2e-5, 2e-5, 2e-5, 1e-3, 2e-5)):
+        assert (a - b).abs().max() <= rtol * b.abs().max(), f"{name}: {(a - b).abs().max():.3g} of {b.abs().max():.3g}"
+
+
 def test_backward_is_bit_reproducible():
     """Tiles go to the threads in a fixed order, so the same inputs give the same gradients to
     the last bit (with a dynamic schedule, per-thread sums came out in a different order)."""
