@@ -352,13 +352,9 @@ def _subset_of_given_model(shared_data: Path, names: set[str], folder: Path) -> 
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="not reached at 200x150: 300 steps on the thumbnails' model end 0.50 dB below the same training on the "
-    "given model's 57 cameras (25.53 vs 26.04 dB); it has 1,828 SfM points against the given model's 8,116; docs/sfm.md",
-)
 def test_training_on_the_sfm_model_matches_the_given_model(shared_data, tumbler_sfm, tmp_path):
-    """Same images, same steps: the PSNR on the held-out views is within 0.5 dB."""
+    """Same images, same steps: the PSNR on the held-out views is within 0.5 dB (measured
+    −0.33 dB at this seed; seeds 1 and 2 +0.30 and −0.33, docs/sfm.md)."""
     from promptgs_engine.config import TrainConfig
     from promptgs_engine.train import run_training
 
