@@ -78,10 +78,14 @@ def propose_views(
     residual_settings: ResidualSettings = ResidualSettings(),
     settings: ProposalSettings = ProposalSettings(),
     quiet: bool = True,
+    points: torch.Tensor | None = None,
 ) -> ProposalSet:
+    """Proposals from every camera's render (``points``: the dataset's SfM points, which
+    reject a proposal lying among them; see `proposals.propose`)."""
     evidence = gather_evidence(render_fn, cameras, residual_settings, quiet)
-    settings = dataclasses.replace(settings, detection_threshold=residual_settings.threshold)
-    result = propose(cameras, evidence, [c.name for c in cameras], settings)
+    settings = dataclasses.replace(settings, detection_threshold=residual_settings.threshold,
+                                   min_contrast=residual_settings.min_contrast)
+    result = propose(cameras, evidence, [c.name for c in cameras], settings, points=points)
     result.info["residual_settings"] = residual_settings.__dict__
     return result
 
@@ -130,7 +134,7 @@ def propose_run(run_dir: Path, out: Path | None = None, snapshot: Path | None = 
     cameras = [c.downscaled(cfg.downscale) for c in scene.train_cameras]
     backend = "cuda" if cfg.backend in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
     draw = params_renderer(on_backend_device(params, backend), backend, cfg.effective_screen_filter, cfg.rasterize_mode)
-    result = propose_views(draw, cameras, quiet=quiet)
+    result = propose_views(draw, cameras, quiet=quiet, points=scene.points)
     result.info.update({"run": str(Path(run_dir).resolve()), "dataset": str(cfg.dataset),
                         "snapshot": str(snapshot) if snapshot else None, "resolution": [cameras[0].width, cameras[0].height]})
     path = Path(out) if out is not None else Path(run_dir) / PROPOSALS_FILE
@@ -165,7 +169,7 @@ class TrainingProposer:
     def run(self, step: int, existing: Sequence[PromptBox]) -> list[PromptBox]:
         t = self.trainer
         draw = params_renderer(t.params, t.backend, t.screen_filter, t.cfg.rasterize_mode, t.active_sh_degree(step))
-        result = propose_views(draw, self.cameras)
+        result = propose_views(draw, self.cameras, points=t.scene.points)
         result.info.update({"step": step, "dataset": str(t.cfg.dataset), "resolution": [self.cameras[0].width, self.cameras[0].height]})
         # Every rank of a distributed run proposes from the same parameters and gets the same
         # boxes; rank 0 alone writes the file.
