@@ -178,6 +178,74 @@ def test_a_compact_blob_passes_the_shape_test_and_a_line_does_not():
     assert not any(compact(y, x) for y, x in on_line)
 
 
+def test_the_residual_along_an_objects_colour_is_strong_at_its_pixel_and_weak_elsewhere():
+    rng = np.random.default_rng(0)
+    render = torch.full((H, W, 3), 0.4) + torch.tensor(rng.normal(0, 0.02, (H, W, 3)), dtype=torch.float32)
+    jj, ii = np.mgrid[0:H, 0:W]
+    blob = torch.tensor(0.3 * np.exp(-((ii + 0.5 - 40.5) ** 2 + (jj + 0.5 - 30.5) ** 2) / (2 * 0.8**2)), dtype=torch.float32)
+    image = render.clone()
+    image[..., 0] += blob  # a red object the render misses
+    ev = view_evidence(image, render)
+    red, green = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    at_blob = np.array([[40.5, 30.5]])
+    assert ev.response_along(at_blob, red, 0.03)[0] > 5
+    assert ev.response_along(at_blob, green, 0.03)[0] < 1  # another colour: no support
+    assert ev.response_along(at_blob, red, 0.5)[0] == 0  # contrast 0.3 is under 0.5
+    # Away from it, the noise reaches 2 local-noise units along red in few pixels.
+    far = np.stack(np.meshgrid(np.arange(70.5, 120.5), np.arange(10.5, 80.5)), -1).reshape(-1, 2)
+    assert float((ev.response_along(far, red, 0.03) >= 2.0).mean()) < 0.1
+
+
+def faint_drone_evidence(cams, strong_views, faint, noise=0.03, seed=0):
+    """Evidence of images with sensor noise where the drone has its full contrast in
+    ``strong_views`` and ``faint`` of it in the others (``faint=0``: no drone at all)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i, cam in enumerate(cams):
+        render, depth = draw(cam)
+        with_drone, _ = draw(cam, drone=DRONE)
+        image = render + (1.0 if i in strong_views else faint) * (with_drone - render)
+        image = (image + torch.tensor(rng.normal(0, noise, image.shape), dtype=torch.float32)).clamp(0, 1)
+        out.append(view_evidence(image, render, depth))
+    return out
+
+
+def test_a_drone_that_two_views_show_strongly_and_the_rest_faintly_is_proposed():
+    # The sparse mountain's black and red drones: a seeding candidate in one or two
+    # views, a weak candidate or none at all in the others, where their residual is
+    # there but no local peak over the noise.
+    from promptgs_engine.proposals import ProposalSettings
+
+    cams = ring_cameras()
+    evidence = faint_drone_evidence(cams, strong_views={0, 5}, faint=0.2)
+    assert sum(int((e.strength >= ResidualSettings().threshold).sum()) for e in evidence) == 2  # two seeds in all
+    found = [p for p in propose(cams, evidence).proposals if p.confidence >= TRAIN_MIN_CONFIDENCE]
+    assert len(found) == 1 and np.linalg.norm(np.array(found[0].point) - DRONE) < 0.03
+    assert found[0].n_supporting >= 10
+    # Without weak votes and colour-matched support, two seeds make no proposal; without
+    # the matched support alone, fewer views support it.
+    strict = ProposalSettings(weak_votes=False, matched_strength=0.0)
+    assert [p for p in propose(cams, evidence, settings=strict).proposals if p.confidence >= TRAIN_MIN_CONFIDENCE] == []
+    unmatched = propose(cams, evidence, settings=ProposalSettings(matched_strength=0.0)).proposals
+    assert len(unmatched) == 1 and unmatched[0].n_supporting < found[0].n_supporting
+    # The same noise without the drone: nothing.
+    assert propose(cams, faint_drone_evidence(cams, strong_views=set(), faint=0.0)).proposals == []
+
+
+def test_a_proposal_among_sfm_points_is_rejected_as_reconstructed():
+    cams = ring_cameras()
+    evidence = evidence_for(cams, drone=DRONE)
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-2, 2, (200, 2)), np.zeros(200)]  # SfM points on the ground only
+    kept = propose(cams, evidence, points=ground)
+    assert len(kept.proposals) == 1 and np.linalg.norm(np.array(kept.proposals[0].point) - DRONE) < 0.03
+    # A point that SfM triangulated on the object (a texture detail it reconstructed):
+    # rejected, and said so.
+    on_it = propose(cams, evidence, points=np.vstack([ground, DRONE + 0.02]))
+    assert on_it.proposals == []
+    assert [r.reason for r in on_it.rejected if np.linalg.norm(np.array(r.point) - DRONE) < 0.03] == ["reconstructed"]
+
+
 def test_a_moving_object_is_reported_not_boxed():
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, drone=DRONE, moving=True))
