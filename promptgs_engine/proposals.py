@@ -142,6 +142,8 @@ class Proposal:
     n_supporting: int  # seeing views with residual evidence there
     rms_px: float
     radius: float  # estimated object radius (world units)
+    colour: tuple[float, float, float] = (0.5, 0.5, 0.5)  # the images' median colour at its candidates
+    pixel: float = 0.0  # world size of one pixel at the point (median over its views)
 
     def to_dict(self) -> dict[str, Any]:
         entry = self.box.to_dict()
@@ -149,6 +151,8 @@ class Proposal:
         entry["evidence"] = {
             "point": [float(v) for v in self.point],
             "radius": float(self.radius),
+            "colour": [round(float(c), 4) for c in self.colour],
+            "pixel": float(self.pixel),
             "rms_px": round(self.rms_px, 3),
             "n_seeing": self.n_seeing,
             "n_supporting": self.n_supporting,
@@ -504,7 +508,9 @@ def propose(
         strength = float(np.median([o.strength for o in obs]))
         conf = confidence(frac, n_sup, strength, rms, settings)
         box = PromptBox(box.center, box.size, box.rotation_wxyz, conf)
-        proposals.append(Proposal(box, conf, tuple(float(v) for v in x), obs, n_see, n_sup, rms, radius))
+        colour = tuple(float(c) for c in np.median([evidence[v].colour[k] for v, k in picks], axis=0))
+        pixel = float(np.median([cams[v].project(x[None])[1][0] / cams[v].K[0, 0] for v, _ in picks]))
+        proposals.append(Proposal(box, conf, tuple(float(v) for v in x), obs, n_see, n_sup, rms, radius, colour, pixel))
     proposals.sort(key=lambda p: -p.confidence)
     proposals = proposals[: settings.max_proposals]
     unmatched: dict[str, list[dict[str, Any]]] = {}

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from .data import Camera
 from .errors import PromptError
 from .prompts import PromptBox, check_visible
-from .proposals import ProposalSet, ProposalSettings, group_boxes, load_proposals, propose
+from .proposals import Proposal, ProposalSet, ProposalSettings, group_boxes, load_proposals, propose
 from .residuals import ResidualSettings, ViewEvidence, view_evidence
 
 log = logging.getLogger("promptgs.propose")
@@ -156,6 +156,7 @@ class TrainingProposer:
         sched = trainer.schedule
         self.step = proposal_step(sched.refine_start_iter, sched.refine_stop_iter, sched.reset_every)
         self.result: ProposalSet | None = None
+        self.trained: list[Proposal] = []  # the proposals the last `run` trained (their boxes)
         path = Path(trainer.out) / PROPOSALS_FILE
         if path.is_file():  # a resumed run: the snapshot keeps showing what was proposed
             try:
@@ -178,6 +179,7 @@ class TrainingProposer:
             result.save(Path(t.out) / PROPOSALS_FILE)
         self.result = result
         boxes = visible_boxes(result.boxes(TRAIN_MIN_CONFIDENCE), self.cameras)
+        self.trained = [p for p in result.proposals if any(p.box is b for b in boxes)]
         if boxes:
             edge = float(np.median([max(b.size) for b in boxes]))
             boxes, members = group_boxes(boxes, GROUP_LINK_EDGES * edge)
@@ -200,8 +202,6 @@ class TrainingProposer:
 
 def _result_from_file(path: Path) -> ProposalSet:
     """A ProposalSet holding only the boxes of a proposal file (for snapshot arrays)."""
-    from .proposals import Proposal
-
     boxes, conf = load_proposals(path)
     props = [Proposal(b, c, b.center, [], 0, 0, 0.0, 0.0) for b, c in zip(boxes, conf)]
     return ProposalSet(props, [], {}, {})

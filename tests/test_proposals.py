@@ -246,6 +246,35 @@ def test_a_proposal_among_sfm_points_is_rejected_as_reconstructed():
     assert [r.reason for r in on_it.rejected if np.linalg.norm(np.array(r.point) - DRONE) < 0.03] == ["reconstructed"]
 
 
+def test_the_trainer_seeds_a_gaussian_at_each_trained_proposal():
+    # What SfM did not triangulate, the proposal did: the trainer starts the object there
+    # (`focus.PromptFocus.seed_proposals`), a Gaussian one pixel across at its depth.
+    from promptgs_engine.config import TrainConfig
+    from promptgs_engine.focus import RESAMPLED_OPACITY, SEED_SCALE_PX, PromptFocus
+    from promptgs_engine.gaussians import init_from_points, sh_to_rgb
+    from promptgs_engine.prompts import PromptBox
+    from promptgs_engine.proposals import Proposal
+    from promptgs_engine.strategies.promptgs import PromptGSStrategy
+    from promptgs_engine.train import make_optimizers
+
+    params = init_from_points(torch.zeros(4, 3), torch.full((4, 3), 0.5), sh_degree=1)
+    optimizers = make_optimizers(params, TrainConfig(dataset="d", out="o"), extent=1.0)
+    strategy = PromptGSStrategy(refine_start_iter=0, refine_stop_iter=1000, refine_every=100, reset_every=1000)
+    state = strategy.initialize_state(scene_scale=1.0)
+    strategy._ensure_state(params, state)
+    trainer = SimpleNamespace(params=params, optimizers=optimizers, strategy=strategy, strategy_state=state)
+    points, colours, pixels = [(1.0, 2.0, 3.0), (-1.0, 0.5, 2.0)], [(0.9, 0.1, 0.1), (0.1, 0.1, 0.8)], [0.02, 0.05]
+    proposals = [Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1, c, px)
+                 for p, c, px in zip(points, colours, pixels)]
+    assert PromptFocus.seed_proposals(SimpleNamespace(trainer=trainer), 150, proposals) == 2
+    assert params["means"].shape[0] == 6
+    assert torch.allclose(params["means"][4:].detach(), torch.tensor(points))
+    assert torch.allclose(sh_to_rgb(params["sh0"][4:, 0].detach()), torch.tensor(colours), atol=1e-5)
+    assert torch.allclose(torch.exp(params["scales"][4:].detach()), SEED_SCALE_PX * torch.tensor(pixels)[:, None].expand(2, 3))
+    assert torch.allclose(torch.sigmoid(params["opacities"][4:].detach()), torch.full((2,), RESAMPLED_OPACITY))
+    assert state["resampled"] == 2 and state["born"][4:].tolist() == [150.0, 150.0]  # judged as resampled ones
+
+
 def test_a_moving_object_is_reported_not_boxed():
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, drone=DRONE, moving=True))
