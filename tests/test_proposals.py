@@ -275,6 +275,15 @@ def test_the_trainer_seeds_a_gaussian_at_each_trained_proposal():
     assert state["resampled"] == 2 and state["born"][4:].tolist() == [150.0, 150.0]  # judged as resampled ones
 
 
+def test_the_trainer_proposes_twice_one_opacity_reset_apart_inside_the_refinement_window():
+    from promptgs_engine.propose import proposal_steps
+
+    assert proposal_steps(10, 300, 100) == [150, 250]  # 600 steps
+    assert proposal_steps(25, 750, 150) == [225, 375]  # 1500 steps
+    assert proposal_steps(10, 240, 100) == [150]  # the second would fall after refinement stops
+    assert proposal_steps(10, 100, 3000) == [55]  # too short to reset: half-way, once
+
+
 def test_a_moving_object_is_reported_not_boxed():
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, drone=DRONE, moving=True))
