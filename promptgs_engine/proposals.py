@@ -479,8 +479,8 @@ def propose(
         ring_px = 2.0 * max(float(evidence[v].scale[k]) for v, k in picks) + 2.0
         rms = float(np.sqrt(np.mean(np.square(errs))))
         cov = _covariance(cams, x, picks, rms)
-        colour = _colour(evidence, picks)
-        seeing, supporting, image_has, floating = _check(cams, evidence, used, x, cov, settings, ring_px, colour)
+        direction = _colour_direction(evidence, picks)
+        seeing, supporting, image_has, floating = _check(cams, evidence, used, x, cov, settings, ring_px, direction)
         n_see, n_sup = int(seeing.sum()), int((seeing & supporting).sum())
         frac = n_sup / max(n_see, 1)
         for v, k in picks:
@@ -600,7 +600,7 @@ def _refine(cams, evidence, picks, tolerance_px):
 _RING = np.array([[np.cos(a), np.sin(a)] for a in np.arange(8) * np.pi / 4])
 
 
-def _colour(evidence, picks) -> np.ndarray | None:
+def _colour_direction(evidence, picks) -> np.ndarray | None:
     """The unit mean colour direction of the residual at the picked candidates (None if
     they disagree completely)."""
     acc = np.zeros(3)
@@ -610,10 +610,11 @@ def _colour(evidence, picks) -> np.ndarray | None:
     return acc / n if n > 1e-9 else None
 
 
-def _check(cams, evidence, used, x, cov, settings: ProposalSettings, radius_px: float = 4.0, colour=None):
-    """Per view: sees x (in the image, not hidden), supports it (residual there), the
-    image has a blob there, and x floats (the render's surface there lies clearly behind
-    it: by ``min_clearance`` of its depth and by three standard deviations of the
+def _check(cams, evidence, used, x, cov, settings: ProposalSettings, radius_px: float = 4.0, direction=None):
+    """Per view: sees x (in the image, not hidden), supports it (a free candidate there,
+    or the residual along the object's colour ``direction``, see the module docstring),
+    the image has a blob there, and x floats (the render's surface there lies clearly
+    behind it: by ``min_clearance`` of its depth and by three standard deviations of the
     triangulated depth along the view's axis, ``cov`` being the point's covariance)."""
     n = len(cams)
     seeing = np.zeros(n, bool)
@@ -639,8 +640,8 @@ def _check(cams, evidence, used, x, cov, settings: ProposalSettings, radius_px: 
         floating[v] = int(behind.sum()) >= 6
         free = ~used[v]
         supporting[v] = bool(free.any()) and float(np.min(np.linalg.norm(ev.uv[free] - uv, axis=1))) <= settings.support_px
-        if not supporting[v] and colour is not None and settings.matched_strength > 0:
-            supporting[v] = ev.response_along(uv, colour, settings.min_contrast)[0] >= settings.matched_strength
+        if not supporting[v] and direction is not None and settings.matched_strength > 0:
+            supporting[v] = ev.response_along(uv, direction, settings.min_contrast)[0] >= settings.matched_strength
         image_has[v] = ev.image_blob_at(uv, 1)[0] >= 0.03
     return seeing, supporting, image_has, floating
 
