@@ -220,6 +220,30 @@ class ProposalSet:
         }
 
 
+def merge_rounds(earlier: ProposalSet | None, latest: ProposalSet) -> ProposalSet:
+    """What the proposal rounds of a run have shown so far: ``earlier``'s proposals, then
+    those of ``latest`` whose point no earlier proposal's box holds (a drone proposed in
+    the first round and reconstructed by the second is still shown). Rejections, candidate
+    counts and settings are the latest round's; ``trained_as`` lists every round's groups,
+    and ``rounds`` the steps of the rounds merged."""
+    import torch
+
+    from .prompts import contains_any
+
+    def rounds(ps: ProposalSet) -> list:
+        return list(ps.info.get("rounds", [ps.info["step"]] if "step" in ps.info else []))
+
+    before = earlier.proposals if earlier is not None else []
+    points = torch.tensor([p.point for p in latest.proposals], dtype=torch.float64).reshape(-1, 3)
+    held = contains_any([p.box for p in before], points).tolist()
+    info = {**(earlier.info if earlier is not None else {}), **latest.info}
+    info["trained_as"] = list(earlier.info.get("trained_as", []) if earlier is not None else []) + list(
+        latest.info.get("trained_as", []))
+    info["rounds"] = (rounds(earlier) if earlier is not None else []) + rounds(latest)
+    return ProposalSet(before + [p for p, h in zip(latest.proposals, held) if not h], latest.rejected,
+                       latest.unmatched, latest.n_candidates, latest.settings, info)
+
+
 def load_proposals(path: str | Path) -> tuple[list[PromptBox], list[float]]:
     """The boxes of a proposal file and their confidences (a plain prompt file reads with
     confidence 1). Raises :class:`PromptError` as `prompts.load_prompts` does."""

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from .data import Camera
 from .errors import PromptError
 from .prompts import PromptBox, check_visible
-from .proposals import Proposal, ProposalSet, ProposalSettings, group_boxes, load_proposals, propose
+from .proposals import Proposal, ProposalSet, ProposalSettings, group_boxes, load_proposals, merge_rounds, propose
 from .residuals import ResidualSettings, ViewEvidence, view_evidence
 
 log = logging.getLogger("promptgs.propose")
@@ -157,8 +157,9 @@ def propose_run(run_dir: Path, out: Path | None = None, snapshot: Path | None = 
 
 class TrainingProposer:
     """The trainer's ``--propose-prompts``: at each of `proposal_steps` it renders every
-    training view at full size, proposes, writes ``RUN/proposals.json`` (the latest
-    round; ``RUN/proposals_stepNNNNNN.json`` keeps each) and returns the prompts to add:
+    training view at full size, proposes, writes ``RUN/proposals.json`` (what every round
+    so far proposed, `merge_rounds`; ``RUN/proposals_stepNNNNNN.json`` keeps each round's
+    own) and returns the prompts to add:
     the proposals of at least `TRAIN_MIN_CONFIDENCE`, grouped (`GROUP_LINK_EDGES`), whose
     centre no existing prompt holds (the file's ``trained_as`` lists them and their
     members). The trainer seeds a Gaussian at each of `trained`."""
@@ -190,7 +191,6 @@ class TrainingProposer:
         draw = params_renderer(t.params, t.backend, t.screen_filter, t.cfg.rasterize_mode, t.active_sh_degree(step))
         result = propose_views(draw, self.cameras, points=t.scene.points)
         result.info.update({"step": step, "dataset": str(t.cfg.dataset), "resolution": [self.cameras[0].width, self.cameras[0].height]})
-        self.result = result
         boxes = visible_boxes(result.boxes(TRAIN_MIN_CONFIDENCE), self.cameras)
         self.trained = [p for p in result.proposals if any(p.box is b for b in boxes)]
         groups: list[PromptBox] = []
@@ -203,10 +203,13 @@ class TrainingProposer:
                 fresh = ~contains_any(list(existing), torch.tensor([p.point for p in self.trained], dtype=torch.float64))
                 self.trained = [p for p, k in zip(self.trained, fresh.tolist()) if k]
             result.info["trained_as"] = [{**g.to_dict(), "members": m} for g, m in zip(groups, members)]
+        # What Blender shows and the file holds: every round's proposals (a drone the first
+        # round proposed and its prompt then reconstructed is not proposed again).
+        self.result = merge_rounds(self.result, result)
         # Every rank of a distributed run proposes from the same parameters and gets the same
-        # boxes; rank 0 alone writes the file: the latest round, and each round by its step.
+        # boxes; rank 0 alone writes the files: all rounds so far, and each round by its step.
         if t.dist.is_writer:
-            result.save(Path(t.out) / PROPOSALS_FILE)
+            self.result.save(Path(t.out) / PROPOSALS_FILE)
             result.save(Path(t.out) / f"proposals_step{step:06d}.json")
         log.info("step %d: %d proposed prompts (%d rejected hypotheses; candidates per view: median %d)",
                  step, len(groups), len(result.rejected), int(sorted(result.n_candidates.values())[len(result.n_candidates) // 2]))

@@ -284,6 +284,28 @@ def test_the_trainer_proposes_twice_one_opacity_reset_apart_inside_the_refinemen
     assert proposal_steps(10, 100, 3000) == [55]  # too short to reset: half-way, once
 
 
+def test_a_later_round_adds_to_what_earlier_rounds_proposed():
+    """The second round keeps showing the first one's proposals (its prompts may have
+    reconstructed them, so they are not proposed again), adds only what no earlier box
+    holds, and lists every round's trained groups."""
+    from promptgs_engine.prompts import PromptBox
+    from promptgs_engine.proposals import Proposal, ProposalSet, merge_rounds
+
+    def round_of(step, points, trained):
+        props = [Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1) for p in points]
+        return ProposalSet(props, [], {}, {"v": len(points)}, info={"step": step, "trained_as": trained})
+
+    first = merge_rounds(None, round_of(150, [(0.0, 0.0, 0.0), (2.0, 0.0, 0.0)], [{"members": [0, 1]}]))
+    assert first.info["rounds"] == [150] and len(first.proposals) == 2
+    # the second round finds the second drone again (inside its first box) and a new one
+    second = merge_rounds(first, round_of(250, [(2.05, 0.0, 0.0), (5.0, 1.0, 0.0)], [{"members": [1]}]))
+    assert [p.point for p in second.proposals] == [(0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (5.0, 1.0, 0.0)]
+    assert second.info["rounds"] == [150, 250] and second.info["step"] == 250
+    assert second.info["trained_as"] == [{"members": [0, 1]}, {"members": [1]}]
+    assert second.n_candidates == {"v": 2}  # the latest round's
+    assert second.to_arrays()["proposal_centers"].shape == (3, 3)
+
+
 def test_a_moving_object_is_reported_not_boxed():
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, drone=DRONE, moving=True))
