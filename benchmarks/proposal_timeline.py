@@ -56,7 +56,7 @@ def main() -> None:
         t0 = time.perf_counter()
         draw = params_renderer(trainer.params, trainer.backend, trainer.screen_filter, cfg.rasterize_mode,
                                trainer.active_sh_degree(trainer.step))
-        result = propose_views(draw, cameras)
+        result = propose_views(draw, cameras, points=trainer.scene.points)
         seconds = time.perf_counter() - t0
         result.info.update({"step": trainer.step, "dataset": str(args.dataset)})
         path = args.out / f"step_{trainer.step:06d}.json"

@@ -59,6 +59,7 @@ PROGRESSIVE_FRACTION = 7 / 30  # of the run, per level (paper: 7000 of 30000 ste
 # and fern (2x) are unchanged.
 MIN_PROGRESSIVE_WIDTH = 100
 RESAMPLED_OPACITY = 0.5  # of the Gaussians resampling adds
+SEED_SCALE_PX = 0.7  # width of the Gaussian seeded at a proposed point, in pixels at its depth (as resampling's)
 MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
 # While densification runs, every FULL_SIZE_EVERY-th single-view step renders the whole
 # view at full size with 3DGS's screen filter: the growth statistics outside the prompts
@@ -315,6 +316,7 @@ class PromptFocus:
             self.set_prompts(self.prompts + visible)
         if self.proposer is not None and self.proposer.is_step(step):
             self.set_prompts(self.prompts + self.proposer.run(step, self.prompts))
+            self.seed_proposals(step, self.proposer.trained)
         if self.prompts and self.is_resample_step(step):
             self.resample(step)
 
@@ -359,6 +361,25 @@ class PromptFocus:
         if added:
             t.strategy.record_resampled(t.strategy_state, added)
             log.info("step %d: resampled %d Gaussians in prompts", step, added)
+        return added
+
+    @torch.no_grad()
+    def seed_proposals(self, step: int, proposals) -> int:
+        """One small Gaussian at each proposal's triangulated point (``proposals.Proposal``),
+        of its candidates' median image colour, ``SEED_SCALE_PX`` pixels wide at its
+        depth, opacity `RESAMPLED_OPACITY`: the point that SfM did not triangulate. It is
+        counted and judged as a resampled one (`strategies.promptgs`)."""
+        t = self.trainer
+        added = 0
+        for p in proposals:
+            added += append_gaussians(
+                t.params, t.optimizers, t.strategy_state, torch.tensor([p.point], dtype=torch.float32),
+                torch.tensor([p.colour], dtype=torch.float32), scale=SEED_SCALE_PX * p.pixel,
+                opacity=RESAMPLED_OPACITY, step=step,
+            )
+        if added:
+            t.strategy.record_resampled(t.strategy_state, added)
+            log.info("step %d: seeded %d Gaussians at proposed points", step, added)
         return added
 
     # -- outputs ----------------------------------------------------------------------

@@ -8,22 +8,35 @@ docs/promptgs.md, "Proposed prompts"):
 
 1. **Voting along the rays.** Each candidate's ray is sampled from the camera up to the
    render's depth at its pixel (the missing object must lie in front of what the render
-   shows there; × 1.1 for slack; only candidates of ``detection_threshold`` or more
-   vote), every voxel of a fine grid (``voxel_px`` pixels at the
+   shows there; × 1.1 for slack), every voxel of a fine grid (``voxel_px`` pixels at the
    typical depth) records which views' rays pass through it (a bit mask per voxel), and a
-   voxel's count is the number of distinct views over its 3 × 3 × 3 neighbourhood.
+   voxel's count is the number of distinct views over its 3 × 3 × 3 neighbourhood. Only
+   the voxels that the ray of a *seeding* candidate (``detection_threshold`` or more)
+   passes are counted, but there the rays of every candidate count (``weak_votes``): an
+   object of low contrast against its background is a seeding candidate in one or two
+   views and a weaker one in a dozen (the sparse mountain's black and red drones).
 2. **Hypotheses.** Voxels reached by at least ``min_views`` views, best first (greedy,
    ``suppress_voxels`` apart): in each view the nearest unused candidate within
    ``gather_px`` of the voxel's projection joins; the point is triangulated (least
    squares over the rays) and views whose reprojection error exceeds ``tolerance_px``
-   leave one by one.
+   leave one by one. A hypothesis without a seeding candidate among its views is
+   dropped: weaker candidates support what a strong one proposes, never alone (rays of
+   weak candidates on the horizon rows of cameras at one height all meet in the plane
+   of the cameras).
 3. **Check against every view.** The point is projected into all cameras; a view *sees*
    it when it falls in the image and the render's surface there is not clearly in front
    of it (depth ≥ 0.9 × the point's). A seeing view *supports* it when one of its
    candidates (any strength) lies within ``support_px`` of the projection and no earlier
    hypothesis claimed it (a candidate explains one point: with a repetitive texture, rays
    through different spots meet at ghost points above the ground, whose views' blobs
-   belong to the spots).
+   belong to the spots), or when the residual at the pixel it projects into has, along
+   the object's colour, a strength of at least ``matched_strength`` (in the local-noise
+   units of ``S``) and a contrast of at least ``min_contrast`` (``matched`` support). The
+   object's colour is the mean unit direction of the residual's response (per colour
+   channel) at the candidates it was triangulated from. A faint object's residual is
+   often no local maximum of ``S ≥ support_threshold`` in a view, and so no candidate,
+   yet it is there with the object's colour; a point where rays met by chance lands on
+   residuals of any colour.
 4. **Decision.** Accepted when at least ``min_views`` views are consistent and the
    supporting views are at least ``min_support_fraction`` of the seeing ones. Otherwise
    rejected with a reason: ``few_views`` (its rays meet in fewer than ``min_views``
@@ -34,7 +47,11 @@ docs/promptgs.md, "Proposed prompts"):
    detail or a silhouette the render has not fitted, or a distant point whose depth the
    views cannot tell apart from the surface's), ``explained`` (most views that see the spot show no residual, and the image
    has a blob there: the render already draws it), ``inconsistent`` (most views that
-   see the spot show nothing there: a moving object or a view-dependent effect).
+   see the spot show nothing there: a moving object or a view-dependent effect),
+   ``reconstructed`` (with the dataset's SfM points given: one lies within
+   ``sfm_radii`` object radii of the point, so SfM triangulated structure there: a
+   texture detail or the tip of a leaf, which training from those points will fit, not
+   an object that SfM and the render both lost).
 5. **Box and confidence.** The box is centred on the point, its axes are those of the
    triangulation's covariance ``σ² (Σ JᵀJ)⁻¹`` (``J`` the 2 × 3 projection Jacobians,
    ``σ`` the reprojection RMS, at least 0.5 px): half-sizes ``3·sqrt(eigenvalue)``,
@@ -93,6 +110,13 @@ class ProposalSettings:
     max_rejected: int = 64
     max_unmatched_per_view: int = 16
     unmatched_strength: float = 10.0  # candidates this strong that nothing accounts for are listed
+    weak_votes: bool = True  # weaker candidates vote too, in the voxels that seeding ones reach
+    matched_strength: float = 2.0  # residual along the object's colour that supports a point (0: off)
+    min_contrast: float = 0.03  # ... and its contrast (ResidualSettings.min_contrast)
+    # An SfM point this close to a point, in object radii, rejects it. Fern's frond tips
+    # lie 3.7-4.1 radii from their nearest SfM point (trained at 3, they cost 0.4 dB),
+    # the mountains' drones 10-16 radii.
+    sfm_radii: float = 5.0
 
 
 @dataclass
@@ -121,6 +145,8 @@ class Proposal:
     n_supporting: int  # seeing views with residual evidence there
     rms_px: float
     radius: float  # estimated object radius (world units)
+    colour: tuple[float, float, float] = (0.5, 0.5, 0.5)  # the images' median colour at its candidates
+    pixel: float = 0.0  # world size of one pixel at the point (median over its views)
 
     def to_dict(self) -> dict[str, Any]:
         entry = self.box.to_dict()
@@ -128,6 +154,8 @@ class Proposal:
         entry["evidence"] = {
             "point": [float(v) for v in self.point],
             "radius": float(self.radius),
+            "colour": [round(float(c), 4) for c in self.colour],
+            "pixel": float(self.pixel),
             "rms_px": round(self.rms_px, 3),
             "n_seeing": self.n_seeing,
             "n_supporting": self.n_supporting,
@@ -141,7 +169,7 @@ class Rejected:
     """A hypothesis that was not boxed, and why."""
 
     point: tuple[float, float, float]
-    reason: str  # few_views | explained | inconsistent
+    reason: str  # few_views | surface | explained | inconsistent | reconstructed
     observations: list[Observation]
     n_seeing: int
     n_supporting: int
@@ -190,6 +218,30 @@ class ProposalSet:
             "proposal_rotations": np.asarray([x.box.rotation_wxyz for x in p], np.float32).reshape(-1, 4),
             "proposal_confidence": np.asarray([x.confidence for x in p], np.float32).reshape(-1),
         }
+
+
+def merge_rounds(earlier: ProposalSet | None, latest: ProposalSet) -> ProposalSet:
+    """What the proposal rounds of a run have shown so far: ``earlier``'s proposals, then
+    those of ``latest`` whose point no earlier proposal's box holds (a drone proposed in
+    the first round and reconstructed by the second is still shown). Rejections, candidate
+    counts and settings are the latest round's; ``trained_as`` lists every round's groups,
+    and ``rounds`` the steps of the rounds merged."""
+    import torch
+
+    from .prompts import contains_any
+
+    def rounds(ps: ProposalSet) -> list:
+        return list(ps.info.get("rounds", [ps.info["step"]] if "step" in ps.info else []))
+
+    before = earlier.proposals if earlier is not None else []
+    points = torch.tensor([p.point for p in latest.proposals], dtype=torch.float64).reshape(-1, 3)
+    held = contains_any([p.box for p in before], points).tolist()
+    info = {**(earlier.info if earlier is not None else {}), **latest.info}
+    info["trained_as"] = list(earlier.info.get("trained_as", []) if earlier is not None else []) + list(
+        latest.info.get("trained_as", []))
+    info["rounds"] = (rounds(earlier) if earlier is not None else []) + rounds(latest)
+    return ProposalSet(before + [p for p, h in zip(latest.proposals, held) if not h], latest.rejected,
+                       latest.unmatched, latest.n_candidates, latest.settings, info)
 
 
 def load_proposals(path: str | Path) -> tuple[list[PromptBox], list[float]]:
@@ -362,15 +414,15 @@ def _vote(cams: list[_Cam], evidence: Sequence[ViewEvidence], voxel: float, max_
     return keys[starts], np.add.reduceat(masks, starts, axis=0)
 
 
-def _neighbourhood_views(keys: np.ndarray, masks: np.ndarray) -> np.ndarray:
-    """Distinct views over each voxel's 3 × 3 × 3 neighbourhood."""
-    coords = _unpack(keys)
-    union = masks.copy()
+def _neighbourhood_views(keys: np.ndarray, masks: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
+    """Distinct views over the 3 × 3 × 3 neighbourhood of each voxel ``at`` (default:
+    every voxel of ``keys``, sorted, with view masks ``masks``)."""
+    at = keys if at is None else at
+    coords = _unpack(at)
+    union = np.zeros((len(at), masks.shape[1]), dtype=masks.dtype)
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
             for dz in (-1, 0, 1):
-                if dx == dy == dz == 0:
-                    continue
                 nk = _pack(coords + np.array([dx, dy, dz]))
                 idx = np.clip(np.searchsorted(keys, nk), 0, len(keys) - 1)
                 found = keys[idx] == nk
@@ -383,13 +435,17 @@ def propose(
     evidence: Sequence[ViewEvidence],
     names: Sequence[str] | None = None,
     settings: ProposalSettings = ProposalSettings(),
+    points: Any = None,
 ) -> ProposalSet:
     """Multi-view proposals from per-view residual evidence (cameras at the evidence's
-    resolution, in the same order). See the module docstring."""
+    resolution, in the same order). ``points`` [P, 3] (array or tensor), the dataset's
+    SfM points, reject the proposals that lie among them (``reconstructed``); without
+    them that test is skipped. See the module docstring."""
     if len(cameras) != len(evidence):
         raise ValueError(f"{len(cameras)} cameras but {len(evidence)} evidence lists")
     names = list(names) if names is not None else [str(getattr(c, "name", i)) for i, c in enumerate(cameras)]
     cams = [_Cam.of(c) for c in cameras]
+    sfm = None if points is None else np.asarray(_np(points), np.float64).reshape(-1, 3)
     counts = {names[i]: len(e) for i, e in enumerate(evidence)}
     empty = ProposalSet([], [], {}, counts, settings)
     if sum(counts.values()) == 0:
@@ -406,12 +462,19 @@ def propose(
     focal = float(np.median([c.K[0, 0] for c in cams]))
     voxel = settings.voxel_px * typical / focal
     keys, masks = _vote(cams, evidence, voxel, max_depth, settings.depth_slack, settings.detection_threshold)
-    nviews = _neighbourhood_views(keys, masks) if len(keys) else np.zeros(0, np.int64)
+    if settings.weak_votes and len(keys):
+        # Every candidate's ray votes, but only the voxels that a seeding one reaches are
+        # counted: weaker candidates support what a strong one proposes.
+        all_keys, all_masks = _vote(cams, evidence, voxel, max_depth, settings.depth_slack, 0.0)
+        nviews = _neighbourhood_views(all_keys, all_masks, at=keys)
+    else:
+        nviews = _neighbourhood_views(keys, masks) if len(keys) else np.zeros(0, np.int64)
     good = np.nonzero(nviews >= settings.min_views)[0]
     order = good[np.argsort(-nviews[good], kind="stable")][: settings.max_hypotheses]
     voxel_centers = (_unpack(keys[order]).astype(np.float64) + 0.5) * voxel
 
-    used = [np.zeros(len(e), dtype=bool) for e in evidence]
+    pool = _Pool(cams, evidence, settings.depth_slack)
+    used = pool.used
     explained = [np.zeros(len(e), dtype=bool) for e in evidence]
     done: list[np.ndarray] = []
     proposals: list[Proposal] = []
@@ -421,12 +484,14 @@ def propose(
         if done and np.min(np.linalg.norm(np.asarray(done) - x0, axis=1)) < suppress:
             continue
         done.append(x0)
-        picks = _gather(cams, evidence, used, x0, settings)
-        if len(picks) < 2:
+        picks = pool.gather(x0, settings.gather_px)
+        if len(picks) < 2 or not _seeded(evidence, picks, settings):
             continue
         x, picks, errs = _refine(cams, evidence, picks, settings.tolerance_px)
         obs = [Observation(names[v], tuple(evidence[v].uv[k]), float(evidence[v].strength[k]), float(e))
                for (v, k), e in zip(picks, errs)]
+        if not _seeded(evidence, picks, settings):
+            continue  # weaker candidates only support what a seeding one proposes
         if len(picks) < settings.min_views:
             if len(picks) >= 2 and len(rejected) < settings.max_rejected:
                 rejected.append(Rejected(tuple(x), "few_views", obs, 0, 0))
@@ -438,7 +503,8 @@ def propose(
         ring_px = 2.0 * max(float(evidence[v].scale[k]) for v, k in picks) + 2.0
         rms = float(np.sqrt(np.mean(np.square(errs))))
         cov = _covariance(cams, x, picks, rms)
-        seeing, supporting, image_has, floating = _check(cams, evidence, used, x, cov, settings, ring_px)
+        direction = _colour_direction(evidence, picks)
+        seeing, supporting, image_has, floating = _check(cams, evidence, used, x, cov, settings, ring_px, direction)
         n_see, n_sup = int(seeing.sum()), int((seeing & supporting).sum())
         frac = n_sup / max(n_see, 1)
         for v, k in picks:
@@ -459,10 +525,19 @@ def propose(
                 rejected.append(Rejected(tuple(x), reason, obs, n_see, n_sup))
             continue
         box, radius = _box(cams, evidence, x, picks, cov)
+        if sfm is not None and len(sfm) and float(np.min(np.linalg.norm(sfm - x, axis=1))) < settings.sfm_radii * radius:
+            # Structure-from-motion triangulated points there: a detail of a surface it
+            # reconstructed (a texture, the tip of a leaf), not an object that both it
+            # and the render lost.
+            if len(rejected) < settings.max_rejected:
+                rejected.append(Rejected(tuple(x), "reconstructed", obs, n_see, n_sup))
+            continue
         strength = float(np.median([o.strength for o in obs]))
         conf = confidence(frac, n_sup, strength, rms, settings)
         box = PromptBox(box.center, box.size, box.rotation_wxyz, conf)
-        proposals.append(Proposal(box, conf, tuple(float(v) for v in x), obs, n_see, n_sup, rms, radius))
+        colour = tuple(float(c) for c in np.median([evidence[v].colour[k] for v, k in picks], axis=0))
+        pixel = float(np.median([cams[v].project(x[None])[1][0] / cams[v].K[0, 0] for v, _ in picks]))
+        proposals.append(Proposal(box, conf, tuple(float(v) for v in x), obs, n_see, n_sup, rms, radius, colour, pixel))
     proposals.sort(key=lambda p: -p.confidence)
     proposals = proposals[: settings.max_proposals]
     unmatched: dict[str, list[dict[str, Any]]] = {}
@@ -487,22 +562,45 @@ def confidence(fraction: float, n_supporting: int, strength: float, rms_px: floa
     return float(min(max(fraction * views * blob * fit, 0.0), 1.0))
 
 
-def _gather(cams, evidence, used, x, settings: ProposalSettings) -> list[tuple[int, int]]:
-    """(view, candidate) pairs: per view the nearest unused candidate within ``gather_px``
-    of x's projection that lies in front of the render's depth there (with its slack)."""
-    picks = []
-    for v, (cam, ev) in enumerate(zip(cams, evidence)):
-        if not len(ev):
-            continue
-        uv, z = cam.project(x[None])
-        if z[0] <= 0:
-            continue
-        d = np.linalg.norm(ev.uv - uv, axis=1)
-        d[used[v]] = np.inf
-        k = int(np.argmin(d))
-        if d[k] <= settings.gather_px and ev.depth_at(ev.uv[k : k + 1])[0] * settings.depth_slack >= z[0]:
-            picks.append((v, k))
-    return picks
+def _seeded(evidence, picks, settings: ProposalSettings) -> bool:
+    """Whether a candidate of at least the detection threshold is among ``picks``."""
+    return any(evidence[v].strength[k] >= settings.detection_threshold for v, k in picks)
+
+
+class _Pool:
+    """Every view's candidates in flat arrays, to find per view the one nearest to a
+    point's projection in one pass. ``used`` holds a view of ``used_flat`` per view, so
+    marking ``used[v][k]`` marks the pool."""
+
+    def __init__(self, cams: list[_Cam], evidence: Sequence[ViewEvidence], slack: float):
+        sizes = np.array([len(e) for e in evidence], dtype=np.int64)
+        self.starts = np.r_[0, np.cumsum(sizes)]
+        self.view = np.repeat(np.arange(len(evidence)), sizes)
+        self.uv = np.concatenate([e.uv for e in evidence]).reshape(-1, 2)
+        self.far = np.concatenate([e.depth_at(e.uv) * slack for e in evidence]) if len(self.uv) else np.zeros(0)
+        self.used_flat = np.zeros(len(self.uv), dtype=bool)
+        self.used = [self.used_flat[a:b] for a, b in zip(self.starts[:-1], self.starts[1:])]
+        self.R = np.stack([c.R for c in cams])
+        self.t = np.stack([c.t for c in cams])
+        self.K = np.stack([c.K for c in cams])
+
+    def gather(self, x: np.ndarray, gather_px: float) -> list[tuple[int, int]]:
+        """(view, candidate) pairs: per view the nearest unused candidate within
+        ``gather_px`` of x's projection that lies in front of the render's depth there
+        (with its slack)."""
+        p = self.R @ x + self.t  # [V, 3]
+        z = p[:, 2]
+        q = np.einsum("vij,vj->vi", self.K, p)
+        proj = q[:, :2] / np.where(z > 0, z, 1.0)[:, None]
+        d = np.linalg.norm(self.uv - proj[self.view], axis=1)
+        d[self.used_flat | (z[self.view] <= 0)] = np.inf
+        picks = []
+        for v in np.unique(self.view):
+            a, b = self.starts[v], self.starts[v + 1]
+            k = int(np.argmin(d[a:b]))
+            if d[a + k] <= gather_px and self.far[a + k] >= z[v]:
+                picks.append((int(v), k))
+        return picks
 
 
 def _refine(cams, evidence, picks, tolerance_px):
@@ -526,10 +624,21 @@ def _refine(cams, evidence, picks, tolerance_px):
 _RING = np.array([[np.cos(a), np.sin(a)] for a in np.arange(8) * np.pi / 4])
 
 
-def _check(cams, evidence, used, x, cov, settings: ProposalSettings, radius_px: float = 4.0):
-    """Per view: sees x (in the image, not hidden), supports it (residual there), the
-    image has a blob there, and x floats (the render's surface there lies clearly behind
-    it: by ``min_clearance`` of its depth and by three standard deviations of the
+def _colour_direction(evidence, picks) -> np.ndarray | None:
+    """The unit mean colour direction of the residual at the picked candidates (None if
+    they disagree completely)."""
+    acc = np.zeros(3)
+    for v, k in picks:
+        acc += evidence[v].residual_direction(k)
+    n = np.linalg.norm(acc)
+    return acc / n if n > 1e-9 else None
+
+
+def _check(cams, evidence, used, x, cov, settings: ProposalSettings, radius_px: float = 4.0, direction=None):
+    """Per view: sees x (in the image, not hidden), supports it (a free candidate there,
+    or the residual along the object's colour ``direction``, see the module docstring),
+    the image has a blob there, and x floats (the render's surface there lies clearly
+    behind it: by ``min_clearance`` of its depth and by three standard deviations of the
     triangulated depth along the view's axis, ``cov`` being the point's covariance)."""
     n = len(cams)
     seeing = np.zeros(n, bool)
@@ -555,6 +664,8 @@ def _check(cams, evidence, used, x, cov, settings: ProposalSettings, radius_px: 
         floating[v] = int(behind.sum()) >= 6
         free = ~used[v]
         supporting[v] = bool(free.any()) and float(np.min(np.linalg.norm(ev.uv[free] - uv, axis=1))) <= settings.support_px
+        if not supporting[v] and direction is not None and settings.matched_strength > 0:
+            supporting[v] = ev.response_along(uv, direction, settings.min_contrast)[0] >= settings.matched_strength
         image_has[v] = ev.image_blob_at(uv, 1)[0] >= 0.03
     return seeing, supporting, image_has, floating
 

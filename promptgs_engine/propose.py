@@ -23,7 +23,7 @@ from tqdm import tqdm
 from .data import Camera
 from .errors import PromptError
 from .prompts import PromptBox, check_visible
-from .proposals import ProposalSet, ProposalSettings, group_boxes, load_proposals, propose
+from .proposals import Proposal, ProposalSet, ProposalSettings, group_boxes, load_proposals, merge_rounds, propose
 from .residuals import ResidualSettings, ViewEvidence, view_evidence
 
 log = logging.getLogger("promptgs.propose")
@@ -55,6 +55,18 @@ def proposal_step(refine_start: int, refine_stop: int, reset_every: int) -> int:
     return step
 
 
+def proposal_steps(refine_start: int, refine_stop: int, reset_every: int) -> list[int]:
+    """The steps the trainer proposes at: `proposal_step`, and one opacity reset later
+    where that is still inside the refinement window (at 600 steps: 150 and 250; at
+    1500: 225 and 375). The second round adds only what the first one's prompts do not
+    hold: on the sparse mountain (seed 3), the render at step 150 had drawn something at
+    the depth of four drones in every view, so they were rejected as lying on its
+    surface; at step 250 three of them are proposed."""
+    first = proposal_step(refine_start, refine_stop, reset_every)
+    second = first + reset_every
+    return [first, second] if refine_start < second < refine_stop else [first]
+
+
 RenderFn = Callable[[Camera], tuple[torch.Tensor, torch.Tensor, torch.Tensor]]  # rgb [H,W,3], depth [H,W], alpha [H,W]
 
 
@@ -78,10 +90,14 @@ def propose_views(
     residual_settings: ResidualSettings = ResidualSettings(),
     settings: ProposalSettings = ProposalSettings(),
     quiet: bool = True,
+    points: torch.Tensor | None = None,
 ) -> ProposalSet:
+    """Proposals from every camera's render (``points``: the dataset's SfM points, which
+    reject a proposal lying among them; see `proposals.propose`)."""
     evidence = gather_evidence(render_fn, cameras, residual_settings, quiet)
-    settings = dataclasses.replace(settings, detection_threshold=residual_settings.threshold)
-    result = propose(cameras, evidence, [c.name for c in cameras], settings)
+    settings = dataclasses.replace(settings, detection_threshold=residual_settings.threshold,
+                                   min_contrast=residual_settings.min_contrast)
+    result = propose(cameras, evidence, [c.name for c in cameras], settings, points=points)
     result.info["residual_settings"] = residual_settings.__dict__
     return result
 
@@ -130,7 +146,7 @@ def propose_run(run_dir: Path, out: Path | None = None, snapshot: Path | None = 
     cameras = [c.downscaled(cfg.downscale) for c in scene.train_cameras]
     backend = "cuda" if cfg.backend in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
     draw = params_renderer(on_backend_device(params, backend), backend, cfg.effective_screen_filter, cfg.rasterize_mode)
-    result = propose_views(draw, cameras, quiet=quiet)
+    result = propose_views(draw, cameras, quiet=quiet, points=scene.points)
     result.info.update({"run": str(Path(run_dir).resolve()), "dataset": str(cfg.dataset),
                         "snapshot": str(snapshot) if snapshot else None, "resolution": [cameras[0].width, cameras[0].height]})
     path = Path(out) if out is not None else Path(run_dir) / PROPOSALS_FILE
@@ -140,18 +156,21 @@ def propose_run(run_dir: Path, out: Path | None = None, snapshot: Path | None = 
 
 
 class TrainingProposer:
-    """The trainer's ``--propose-prompts``: at `proposal_step` it renders every training
-    view at full size, proposes, writes ``RUN/proposals.json`` and returns the prompts to
-    add: the proposals of at least `TRAIN_MIN_CONFIDENCE`, grouped (`GROUP_LINK_EDGES`;
-    the file's ``trained_as`` lists the groups and their members), whose centre no
-    existing prompt holds."""
+    """The trainer's ``--propose-prompts``: at each of `proposal_steps` it renders every
+    training view at full size, proposes, writes ``RUN/proposals.json`` (what every round
+    so far proposed, `merge_rounds`; ``RUN/proposals_stepNNNNNN.json`` keeps each round's
+    own) and returns the prompts to add:
+    the proposals of at least `TRAIN_MIN_CONFIDENCE`, grouped (`GROUP_LINK_EDGES`), whose
+    centre no existing prompt holds (the file's ``trained_as`` lists them and their
+    members). The trainer seeds a Gaussian at each of `trained`."""
 
     def __init__(self, trainer, cameras: Sequence[Camera]):
         self.trainer = trainer
         self.cameras = list(cameras)
         sched = trainer.schedule
-        self.step = proposal_step(sched.refine_start_iter, sched.refine_stop_iter, sched.reset_every)
+        self.steps = proposal_steps(sched.refine_start_iter, sched.refine_stop_iter, sched.reset_every)
         self.result: ProposalSet | None = None
+        self.trained: list[Proposal] = []  # the proposals the last `run` trained (their boxes)
         path = Path(trainer.out) / PROPOSALS_FILE
         if path.is_file():  # a resumed run: the snapshot keeps showing what was proposed
             try:
@@ -160,35 +179,41 @@ class TrainingProposer:
                 self.result = None
 
     def is_step(self, step: int) -> bool:
-        return step == self.step
+        return step in self.steps
 
     def run(self, step: int, existing: Sequence[PromptBox]) -> list[PromptBox]:
+        """Propose from the current parameters; the prompts to add (the groups whose centre
+        no ``existing`` prompt holds). `trained` is then the proposals to seed: those of
+        confidence ≥ `TRAIN_MIN_CONFIDENCE` whose point no existing prompt holds."""
+        from .prompts import contains_any
+
         t = self.trainer
         draw = params_renderer(t.params, t.backend, t.screen_filter, t.cfg.rasterize_mode, t.active_sh_degree(step))
-        result = propose_views(draw, self.cameras)
+        result = propose_views(draw, self.cameras, points=t.scene.points)
         result.info.update({"step": step, "dataset": str(t.cfg.dataset), "resolution": [self.cameras[0].width, self.cameras[0].height]})
-        # Every rank of a distributed run proposes from the same parameters and gets the same
-        # boxes; rank 0 alone writes the file.
-        writer = t.dist.is_writer
-        if writer:
-            result.save(Path(t.out) / PROPOSALS_FILE)
-        self.result = result
         boxes = visible_boxes(result.boxes(TRAIN_MIN_CONFIDENCE), self.cameras)
+        self.trained = [p for p in result.proposals if any(p.box is b for b in boxes)]
+        groups: list[PromptBox] = []
         if boxes:
             edge = float(np.median([max(b.size) for b in boxes]))
-            boxes, members = group_boxes(boxes, GROUP_LINK_EDGES * edge)
-            result.info["trained_as"] = [{**b.to_dict(), "members": m} for b, m in zip(boxes, members)]
-            if writer:
-                result.save(Path(t.out) / PROPOSALS_FILE)
-        if existing:
-            from .prompts import contains_any
-
-            centers = torch.tensor([b.center for b in boxes], dtype=torch.float64).reshape(-1, 3)
-            held = contains_any(list(existing), centers)
-            boxes = [b for b, h in zip(boxes, held.tolist()) if not h]
+            groups, members = group_boxes(boxes, GROUP_LINK_EDGES * edge)
+            if existing:  # an earlier round (or the user) has these already
+                new = ~contains_any(list(existing), torch.tensor([g.center for g in groups], dtype=torch.float64))
+                groups, members = [g for g, k in zip(groups, new.tolist()) if k], [m for m, k in zip(members, new.tolist()) if k]
+                fresh = ~contains_any(list(existing), torch.tensor([p.point for p in self.trained], dtype=torch.float64))
+                self.trained = [p for p, k in zip(self.trained, fresh.tolist()) if k]
+            result.info["trained_as"] = [{**g.to_dict(), "members": m} for g, m in zip(groups, members)]
+        # What Blender shows and the file holds: every round's proposals (a drone the first
+        # round proposed and its prompt then reconstructed is not proposed again).
+        self.result = merge_rounds(self.result, result)
+        # Every rank of a distributed run proposes from the same parameters and gets the same
+        # boxes; rank 0 alone writes the files: all rounds so far, and each round by its step.
+        if t.dist.is_writer:
+            self.result.save(Path(t.out) / PROPOSALS_FILE)
+            result.save(Path(t.out) / f"proposals_step{step:06d}.json")
         log.info("step %d: %d proposed prompts (%d rejected hypotheses; candidates per view: median %d)",
-                 step, len(boxes), len(result.rejected), int(sorted(result.n_candidates.values())[len(result.n_candidates) // 2]))
-        return boxes
+                 step, len(groups), len(result.rejected), int(sorted(result.n_candidates.values())[len(result.n_candidates) // 2]))
+        return groups
 
     def arrays(self) -> dict:
         return self.result.to_arrays() if self.result is not None else {}
@@ -196,8 +221,6 @@ class TrainingProposer:
 
 def _result_from_file(path: Path) -> ProposalSet:
     """A ProposalSet holding only the boxes of a proposal file (for snapshot arrays)."""
-    from .proposals import Proposal
-
     boxes, conf = load_proposals(path)
     props = [Proposal(b, c, b.center, [], 0, 0, 0.0, 0.0) for b, c in zip(boxes, conf)]
     return ProposalSet(props, [], {}, {})

@@ -71,9 +71,10 @@ class ViewEvidence:
     """One view's residual evidence. ``uv`` are continuous pixel positions; ``strength``
     and ``contrast`` the candidates' ``S`` and ``R``; ``scale`` their DoG centre width
     (px); ``colour`` the image's colour at the candidate pixel. ``strength_map`` [H, W],
-    ``image_blob`` [H, W] (the image's own blob response) and ``depth`` [H, W] (the
-    render's expected depth, inf where it shows nothing) are kept, in float16 (6 bytes a
-    pixel), for the multi-view check."""
+    ``image_blob`` [H, W] (the image's own blob response), ``depth`` [H, W] (the render's
+    expected depth, inf where it shows nothing) and ``residual_map`` [H, W, 3] (the
+    residual's response per channel at the scale of ``S``, whose norm is ``R``) are kept,
+    in float16 (12 bytes a pixel), for the multi-view check."""
 
     uv: np.ndarray  # [K, 2] float64
     strength: np.ndarray  # [K]
@@ -83,6 +84,7 @@ class ViewEvidence:
     strength_map: np.ndarray = field(repr=False)  # [H, W] float16
     image_blob: np.ndarray = field(repr=False)  # [H, W] float16: the image's own blob response R
     depth: np.ndarray | None = field(default=None, repr=False)  # [H, W] float16 or None
+    residual_map: np.ndarray | None = field(default=None, repr=False)  # [H, W, 3] float16: R's vector
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
@@ -95,18 +97,49 @@ class ViewEvidence:
         """The largest image blob response within ``radius`` pixels of each position [N, 2]."""
         return _max_near(self.image_blob, uv, radius)
 
+    def residual_direction(self, k: int) -> np.ndarray:
+        """[3] unit colour direction of the residual's response at candidate ``k``'s pixel
+        (zeros without the map)."""
+        if self.residual_map is None:
+            return np.zeros(3)
+        px, py = np.floor(self.uv[k]).astype(np.int64)
+        vec = self.residual_map[py, px].astype(np.float64)
+        return vec / max(float(np.linalg.norm(vec)), 1e-12)
+
+    def response_along(self, uv: np.ndarray, direction: np.ndarray, min_contrast: float) -> np.ndarray:
+        """The residual's strength along the colour ``direction`` [3] at the pixel of each
+        position [N, 2]: the component of its response on that direction, in local-noise
+        units as ``S`` (``S`` times the component over the response's norm), where that
+        component is at least ``min_contrast``; 0 elsewhere, outside the image or without
+        the map."""
+        out = np.zeros(len(uv))
+        if self.residual_map is None:
+            return out
+        px, py, ok = _pixels(uv, self.strength_map.shape)
+        vec = self.residual_map[py[ok], px[ok]].astype(np.float64)
+        along = vec @ np.asarray(direction, np.float64)
+        norm = np.maximum(np.linalg.norm(vec, axis=1), 1e-12)
+        strength = along / norm * self.strength_map[py[ok], px[ok]].astype(np.float64)
+        out[ok] = np.where(along >= min_contrast, strength, 0.0)
+        return out
 
     def depth_at(self, uv: np.ndarray) -> np.ndarray:
         """The render's depth at each position [N, 2] (inf outside the image or without depth)."""
         out = np.full(len(uv), np.inf)
         if self.depth is None:
             return out
-        h, w = self.depth.shape
-        px = np.floor(uv[:, 0]).astype(np.int64)
-        py = np.floor(uv[:, 1]).astype(np.int64)
-        ok = (px >= 0) & (px < w) & (py >= 0) & (py < h)
+        px, py, ok = _pixels(uv, self.depth.shape)
         out[ok] = self.depth[py[ok], px[ok]].astype(np.float64)
         return out
+
+
+def _pixels(uv: np.ndarray, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Column, row and inside-the-image flag [N] of the pixel holding each position [N, 2]
+    in an image of ``shape`` (H, W, ...)."""
+    h, w = shape[:2]
+    px = np.floor(uv[:, 0]).astype(np.int64)
+    py = np.floor(uv[:, 1]).astype(np.int64)
+    return px, py, (px >= 0) & (px < w) & (py >= 0) & (py < h)
 
 
 def _max_near(image: np.ndarray, uv: np.ndarray, radius: int) -> np.ndarray:
@@ -233,7 +266,8 @@ def _as_chw(img: torch.Tensor) -> torch.Tensor:
 def residual_strength(image: torch.Tensor, render: torch.Tensor, settings: ResidualSettings = ResidualSettings()) -> dict[str, torch.Tensor]:
     """Per-pixel maps [H, W] of one view (``image`` and ``render`` [H, W, 3] in [0, 1]):
     ``strength`` (S), ``contrast`` (R of the residual), ``scale`` (the DoG centre width
-    that gave S), ``image_blob`` (R of the image itself, at that scale), ``roundness``
+    that gave S), ``residual`` [3, H, W] (the residual's response per channel at that
+    scale; its norm is ``contrast``), ``image_blob`` (R of the image itself, at that scale), ``roundness``
     and ``extent`` (of the residual's response at that scale, `_shape`) and ``image_has_it``
     (the image's blob response at the pixel is at least the render's)."""
     gt, ren = _as_chw(image), _as_chw(render)
@@ -250,6 +284,7 @@ def residual_strength(image: torch.Tensor, render: torch.Tensor, settings: Resid
         own = _norm(dog_gt)
         maps = {
             "strength": s, "contrast": r, "scale": torch.full_like(s, sigma), "image_blob": own,
+            "residual": dog_gt - dog_ren,
             **dict(zip(("roundness", "extent"), _shape(dog_gt - dog_ren, sigma))),
             "image_has_it": (own >= _norm(dog_ren)).float(),
         }
@@ -307,6 +342,7 @@ def view_evidence(
         strength_map=s.clamp(max=60000).numpy().astype(np.float16),
         image_blob=maps["image_blob"].clamp(max=60000).numpy().astype(np.float16),
         depth=depth_map,
+        residual_map=maps["residual"].clamp(-60000, 60000).permute(1, 2, 0).numpy().astype(np.float16),
     )
 
 

@@ -178,6 +178,134 @@ def test_a_compact_blob_passes_the_shape_test_and_a_line_does_not():
     assert not any(compact(y, x) for y, x in on_line)
 
 
+def test_the_residual_along_an_objects_colour_is_strong_at_its_pixel_and_weak_elsewhere():
+    rng = np.random.default_rng(0)
+    render = torch.full((H, W, 3), 0.4) + torch.tensor(rng.normal(0, 0.02, (H, W, 3)), dtype=torch.float32)
+    jj, ii = np.mgrid[0:H, 0:W]
+    blob = torch.tensor(0.3 * np.exp(-((ii + 0.5 - 40.5) ** 2 + (jj + 0.5 - 30.5) ** 2) / (2 * 0.8**2)), dtype=torch.float32)
+    image = render.clone()
+    image[..., 0] += blob  # a red object the render misses
+    ev = view_evidence(image, render)
+    red, green = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    at_blob = np.array([[40.5, 30.5]])
+    assert ev.response_along(at_blob, red, 0.03)[0] > 5
+    assert ev.response_along(at_blob, green, 0.03)[0] < 1  # another colour: no support
+    assert ev.response_along(at_blob, red, 0.5)[0] == 0  # contrast 0.3 is under 0.5
+    # Away from it, the noise reaches 2 local-noise units along red in few pixels.
+    far = np.stack(np.meshgrid(np.arange(70.5, 120.5), np.arange(10.5, 80.5)), -1).reshape(-1, 2)
+    assert float((ev.response_along(far, red, 0.03) >= 2.0).mean()) < 0.1
+
+
+def faint_drone_evidence(cams, strong_views, faint, noise=0.03, seed=0):
+    """Evidence of images with sensor noise where the drone has its full contrast in
+    ``strong_views`` and ``faint`` of it in the others (``faint=0``: no drone at all)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i, cam in enumerate(cams):
+        render, depth = draw(cam)
+        with_drone, _ = draw(cam, drone=DRONE)
+        image = render + (1.0 if i in strong_views else faint) * (with_drone - render)
+        image = (image + torch.tensor(rng.normal(0, noise, image.shape), dtype=torch.float32)).clamp(0, 1)
+        out.append(view_evidence(image, render, depth))
+    return out
+
+
+def test_a_drone_that_two_views_show_strongly_and_the_rest_faintly_is_proposed():
+    # The sparse mountain's black and red drones: a seeding candidate in one or two
+    # views, a weak candidate or none at all in the others, where their residual is
+    # there but no local peak over the noise.
+    from promptgs_engine.proposals import ProposalSettings
+
+    cams = ring_cameras()
+    evidence = faint_drone_evidence(cams, strong_views={0, 5}, faint=0.2)
+    assert sum(int((e.strength >= ResidualSettings().threshold).sum()) for e in evidence) == 2  # two seeds in all
+    found = [p for p in propose(cams, evidence).proposals if p.confidence >= TRAIN_MIN_CONFIDENCE]
+    assert len(found) == 1 and np.linalg.norm(np.array(found[0].point) - DRONE) < 0.03
+    assert found[0].n_supporting >= 10
+    # Without weak votes and colour-matched support, two seeds make no proposal; without
+    # the matched support alone, fewer views support it.
+    strict = ProposalSettings(weak_votes=False, matched_strength=0.0)
+    assert [p for p in propose(cams, evidence, settings=strict).proposals if p.confidence >= TRAIN_MIN_CONFIDENCE] == []
+    unmatched = propose(cams, evidence, settings=ProposalSettings(matched_strength=0.0)).proposals
+    assert len(unmatched) == 1 and unmatched[0].n_supporting < found[0].n_supporting
+    # The same noise without the drone: nothing.
+    assert propose(cams, faint_drone_evidence(cams, strong_views=set(), faint=0.0)).proposals == []
+
+
+def test_a_proposal_among_sfm_points_is_rejected_as_reconstructed():
+    cams = ring_cameras()
+    evidence = evidence_for(cams, drone=DRONE)
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-2, 2, (200, 2)), np.zeros(200)]  # SfM points on the ground only
+    kept = propose(cams, evidence, points=ground)
+    assert len(kept.proposals) == 1 and np.linalg.norm(np.array(kept.proposals[0].point) - DRONE) < 0.03
+    # A point that SfM triangulated on the object (a texture detail it reconstructed):
+    # rejected, and said so.
+    on_it = propose(cams, evidence, points=np.vstack([ground, DRONE + 0.02]))
+    assert on_it.proposals == []
+    assert [r.reason for r in on_it.rejected if np.linalg.norm(np.array(r.point) - DRONE) < 0.03] == ["reconstructed"]
+
+
+def test_the_trainer_seeds_a_gaussian_at_each_trained_proposal():
+    # What SfM did not triangulate, the proposal did: the trainer starts the object there
+    # (`focus.PromptFocus.seed_proposals`), a Gaussian one pixel across at its depth.
+    from promptgs_engine.config import TrainConfig
+    from promptgs_engine.focus import RESAMPLED_OPACITY, SEED_SCALE_PX, PromptFocus
+    from promptgs_engine.gaussians import init_from_points, sh_to_rgb
+    from promptgs_engine.prompts import PromptBox
+    from promptgs_engine.proposals import Proposal
+    from promptgs_engine.strategies.promptgs import PromptGSStrategy
+    from promptgs_engine.train import make_optimizers
+
+    params = init_from_points(torch.zeros(4, 3), torch.full((4, 3), 0.5), sh_degree=1)
+    optimizers = make_optimizers(params, TrainConfig(dataset="d", out="o"), extent=1.0)
+    strategy = PromptGSStrategy(refine_start_iter=0, refine_stop_iter=1000, refine_every=100, reset_every=1000)
+    state = strategy.initialize_state(scene_scale=1.0)
+    strategy._ensure_state(params, state)
+    trainer = SimpleNamespace(params=params, optimizers=optimizers, strategy=strategy, strategy_state=state)
+    points, colours, pixels = [(1.0, 2.0, 3.0), (-1.0, 0.5, 2.0)], [(0.9, 0.1, 0.1), (0.1, 0.1, 0.8)], [0.02, 0.05]
+    proposals = [Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1, c, px)
+                 for p, c, px in zip(points, colours, pixels)]
+    assert PromptFocus.seed_proposals(SimpleNamespace(trainer=trainer), 150, proposals) == 2
+    assert params["means"].shape[0] == 6
+    assert torch.allclose(params["means"][4:].detach(), torch.tensor(points))
+    assert torch.allclose(sh_to_rgb(params["sh0"][4:, 0].detach()), torch.tensor(colours), atol=1e-5)
+    assert torch.allclose(torch.exp(params["scales"][4:].detach()), SEED_SCALE_PX * torch.tensor(pixels)[:, None].expand(2, 3))
+    assert torch.allclose(torch.sigmoid(params["opacities"][4:].detach()), torch.full((2,), RESAMPLED_OPACITY))
+    assert state["resampled"] == 2 and state["born"][4:].tolist() == [150.0, 150.0]  # judged as resampled ones
+
+
+def test_the_trainer_proposes_twice_one_opacity_reset_apart_inside_the_refinement_window():
+    from promptgs_engine.propose import proposal_steps
+
+    assert proposal_steps(10, 300, 100) == [150, 250]  # 600 steps
+    assert proposal_steps(25, 750, 150) == [225, 375]  # 1500 steps
+    assert proposal_steps(10, 240, 100) == [150]  # the second would fall after refinement stops
+    assert proposal_steps(10, 100, 3000) == [55]  # too short to reset: half-way, once
+
+
+def test_a_later_round_adds_to_what_earlier_rounds_proposed():
+    """The second round keeps showing the first one's proposals (its prompts may have
+    reconstructed them, so they are not proposed again), adds only what no earlier box
+    holds, and lists every round's trained groups."""
+    from promptgs_engine.prompts import PromptBox
+    from promptgs_engine.proposals import Proposal, ProposalSet, merge_rounds
+
+    def round_of(step, points, trained):
+        props = [Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1) for p in points]
+        return ProposalSet(props, [], {}, {"v": len(points)}, info={"step": step, "trained_as": trained})
+
+    first = merge_rounds(None, round_of(150, [(0.0, 0.0, 0.0), (2.0, 0.0, 0.0)], [{"members": [0, 1]}]))
+    assert first.info["rounds"] == [150] and len(first.proposals) == 2
+    # the second round finds the second drone again (inside its first box) and a new one
+    second = merge_rounds(first, round_of(250, [(2.05, 0.0, 0.0), (5.0, 1.0, 0.0)], [{"members": [1]}]))
+    assert [p.point for p in second.proposals] == [(0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (5.0, 1.0, 0.0)]
+    assert second.info["rounds"] == [150, 250] and second.info["step"] == 250
+    assert second.info["trained_as"] == [{"members": [0, 1]}, {"members": [1]}]
+    assert second.n_candidates == {"v": 2}  # the latest round's
+    assert second.to_arrays()["proposal_centers"].shape == (3, 3)
+
+
 def test_a_moving_object_is_reported_not_boxed():
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, drone=DRONE, moving=True))
