@@ -225,6 +225,23 @@ def test_no_background_and_dense_opaque_scene():
         assert (a - b).abs().max() <= 5e-4 * b.abs().max() + 1e-6
 
 
+def cpu_and_reference(scene64, Ks64, width, height, weights):
+    """One camera at the origin: the C++ backend in float32 and the reference in float64 on
+    the same Gaussians (means, quats, scales, opacities, colours), the same weighted loss
+    of image and alpha backpropagated. Per backend: (image, alpha, gradients of the five
+    inputs and of means2d), in float64."""
+    outs = []
+    for dtype, fn in ((torch.float32, render), (torch.float64, render_reference)):
+        params = [t.detach().clone().to(dtype).requires_grad_() for t in scene64]
+        kw = {"backend": "cpu"} if fn is render else {}
+        out, alpha, info = fn(*params, torch.eye(4, dtype=dtype)[None], Ks64.to(dtype), width, height, **kw)
+        info["means2d"].retain_grad()
+        ((out * weights.to(dtype)).sum() + alpha.sum()).backward()
+        grads = [p.grad.double() for p in params] + [info["means2d"].grad.double()]
+        outs.append((out.detach().double(), alpha.detach().double(), grads))
+    return outs
+
+
 def test_thin_slanted_gaussians_that_graze_tile_corners():
     """Wire-like Gaussians (long, thin, slanted, some faint) crossing the 16-pixel tiles at
     every angle: the rasterizer drops the tile rows whose slice of the ellipse misses the
@@ -246,14 +263,8 @@ def test_thin_slanted_gaussians_that_graze_tile_corners():
     Ks = torch.tensor([[[60.0, 0.0, width / 2 + 0.37], [0.0, 60.0, height / 2 - 0.21], [0.0, 0.0, 1.0]]],
                       dtype=torch.float64)
     weights = torch.randn(1, height, width, 3, generator=g, dtype=torch.float64)
-    outs = []
-    for dtype, fn in ((torch.float32, render), (torch.float64, render_reference)):
-        params = [t.detach().clone().to(dtype).requires_grad_() for t in (means, quats, scales, opacities, colors)]
-        kw = {"backend": "cpu"} if fn is render else {}
-        out, alpha, _ = fn(*params, torch.eye(4, dtype=dtype)[None], Ks.to(dtype), width, height, **kw)
-        ((out * weights.to(dtype)).sum() + alpha.sum()).backward()
-        outs.append((out.detach().double(), alpha.detach().double(), [p.grad.double() for p in params]))
-    (cpu_img, cpu_alpha, cpu_grads), (ref_img, ref_alpha, ref_grads) = outs
+    (cpu_img, cpu_alpha, cpu_grads), (ref_img, ref_alpha, ref_grads) = cpu_and_reference(
+        (means, quats, scales, opacities, colors), Ks, width, height, weights)
     assert ((ref_alpha > 0.02) & (ref_alpha < 0.9)).sum() > 300  # many partly covered pixels along the lines
     # float32 against float64 on conics of thin Gaussians; a wrongly dropped row would miss
     # at least 1/255 of alpha at some pixel
@@ -280,15 +291,9 @@ def test_large_gaussians_gradients_match_the_reference():
     colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
     Ks = torch.tensor([[[200.0, 0.0, width / 2], [0.0, 200.0, height / 2], [0.0, 0.0, 1.0]]], dtype=torch.float64)
     weights = torch.randn(1, height, width, 3, generator=g, dtype=torch.float64)
-    grads = []
-    for dtype, fn in ((torch.float32, render), (torch.float64, render_reference)):
-        params = [t.detach().clone().to(dtype).requires_grad_() for t in (means, quats, scales, opacities, colors)]
-        kw = {"backend": "cpu"} if fn is render else {}
-        out, alpha, info = fn(*params, torch.eye(4, dtype=dtype)[None], Ks.to(dtype), width, height, **kw)
-        info["means2d"].retain_grad()
-        ((out * weights.to(dtype)).sum() + alpha.sum()).backward()
-        grads.append([p.grad.double() for p in params] + [info["means2d"].grad.double()])
-    for name, a, b, rtol in zip(GRAD_NAMES, *grads, (2e-5, 2e-5, 2e-5, 2e-5, 1e-3, 2e-5)):
+    (_, _, cpu_grads), (_, _, ref_grads) = cpu_and_reference(
+        (means, quats, scales, opacities, colors), Ks, width, height, weights)
+    for name, a, b, rtol in zip(GRAD_NAMES, cpu_grads, ref_grads, (2e-5, 2e-5, 2e-5, 2e-5, 1e-3, 2e-5)):
         assert (a - b).abs().max() <= rtol * b.abs().max(), f"{name}: {(a - b).abs().max():.3g} of {b.abs().max():.3g}"
 
 
