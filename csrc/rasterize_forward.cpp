@@ -145,25 +145,33 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
     }
     gather_timer.stop();
 
-    // 4. Tile lists. The depth order is cut into chunks (several per thread: near Gaussians
-    // reach more tiles, so equal slices are not equal work). One pass finds each chunk's
+    // 4. Tile lists. The depth order is cut into chunks of about equal work (several per
+    // thread; the work of a Gaussian is its box of tiles: near Gaussians, and the far
+    // background shell, reach many more tiles than the rest). One pass finds each chunk's
     // (tile, rank) pairs (a Gaussian whose box spans several tiles gets, per tile row, only
     // the tiles its ellipse reaches) and counts them per tile; the pairs are then scattered,
     // each chunk's after those of the chunks before it in every tile, so every tile list
     // keeps the depth order whichever thread made which chunk.
     StageTimer bin_timer(kStageBin);
     const int n_chunks = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(m / 256, 4 * omp_get_max_threads())));
+    std::vector<int64_t> work(static_cast<size_t>(m) + 1, 0);  // work[j]: tiles in the boxes of ranks < j
+    for (int64_t j = 0; j < m; ++j)
+        work[j + 1] = work[j] + int64_t{rects[j].x1 - rects[j].x0} * (rects[j].y1 - rects[j].y0);
+    std::vector<int64_t> cut(static_cast<size_t>(n_chunks) + 1, m);  // chunk c is ranks [cut[c], cut[c + 1])
+    for (int c = 0; c < n_chunks; ++c)
+        cut[c] = std::lower_bound(work.begin(), work.end(), work[m] * c / n_chunks) - work.begin();
+    cut[0] = 0;
     std::vector<std::vector<int32_t>> counts(n_chunks), pair_tiles(n_chunks), pair_ranks(n_chunks);
     bins.offsets.assign(n_tiles + 1, 0);
 #pragma omp parallel for schedule(dynamic, 1)
     for (int chunk = 0; chunk < n_chunks; ++chunk) {
-        const int64_t j0 = m * chunk / n_chunks, j1 = m * (chunk + 1) / n_chunks;
-        std::vector<int32_t>& cnt = counts[chunk];
-        std::vector<int32_t>& tiles = pair_tiles[chunk];
-        std::vector<int32_t>& ranks = pair_ranks[chunk];
-        cnt.assign(n_tiles, 0);
-        tiles.reserve(static_cast<size_t>(4 * (j1 - j0)));
-        ranks.reserve(static_cast<size_t>(4 * (j1 - j0)));
+        const int64_t j0 = cut[chunk], j1 = cut[chunk + 1];
+        // Filled as locals and moved out at the end: the vectors' headers sit side by side
+        // in counts / pair_tiles / pair_ranks, and writing them on every pair from two threads
+        // made the cores pass one cache line back and forth (the pass took twice as long).
+        std::vector<int32_t> cnt(static_cast<size_t>(n_tiles), 0), tiles, ranks;
+        tiles.reserve(static_cast<size_t>(work[j1] - work[j0]));  // at most the boxes' tiles
+        ranks.reserve(static_cast<size_t>(work[j1] - work[j0]));
         auto emit = [&](int tile, int64_t j) {
             cnt[tile]++;
             tiles.push_back(tile);
@@ -192,6 +200,9 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
                 for (int tx = tx0; tx <= tx1 && k0 <= k1; ++tx) emit(ty * bins.tiles_x + tx, j);
             }
         }
+        counts[chunk] = std::move(cnt);
+        pair_tiles[chunk] = std::move(tiles);
+        pair_ranks[chunk] = std::move(ranks);
     }
     int32_t total = 0;
     for (int t = 0; t < n_tiles; ++t) {
