@@ -353,5 +353,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           "dL/dimg from (dL/dssim, partials, img, ref, window) of ssim_forward.");
     m.def("num_threads", &num_threads, "OpenMP threads the rasterizer uses.");
     m.def("simd_variant", [] { return std::string(promptgs::kernels().name); },
-          "Instruction set of the tile kernels picked for this CPU (avx512, avx2, sse2 or native).");
+          "Instruction set of the kernels picked for this CPU (avx512, avx2, sse2 or native; PROMPTGS_SIMD caps it).");
 }
