@@ -203,6 +203,23 @@ def test_rerun_resumes_from_the_database(box_video, box_sfm, capsys):
     assert code == 2 and "other settings" in err and "max_image_size 1600 (now 100)" in err
 
 
+def test_global_mapper_recovers_the_camera_path(box_video, box_sfm, tmp_path, capsys):
+    """`--mapper global` (GLOMAP) on the features and matches of the module's run (kept in
+    the database, so only mapping runs) registers every frame on the true path."""
+    video, true_centres = box_video
+    out = tmp_path / "global"
+    shutil.copytree(box_sfm, out)
+    code, printed, err = _run_cli(["sfm", str(video), "--out", str(out), "--fps", "5", "--quiet", "--mapper", "global"], capsys)
+    assert code == 0, err
+    summary = json.loads(printed)
+    assert summary["pairs_reused"] == summary["pairs"] and summary["mapper"] == "global" and summary["mappers_tried"] == {"global": 15}
+    assert summary["images_registered"] == 15 and (out / "colmap" / "models-global" / "0").is_dir()
+    times = json.loads((out / "colmap" / "frames" / "frames.json").read_text())["stats"]["times_s"]
+    truth = {f"frame_{k + 1:06d}.jpg": true_centres[round(t * VIDEO_FPS)] for k, t in enumerate(times)}
+    report = compare_centres(camera_centres(out / "sparse" / "0"), truth)
+    assert report["common"] == 15 and report["max_error"] < 0.03 and report["median_error"] < 0.015, report
+
+
 def test_events_stream(box_video, tmp_path, capsys):
     video, _ = box_video
     code, out, _ = _run_cli(["sfm", str(video), "--out", str(tmp_path / "ev"), "--fps", "2.5", "--events", "--matcher", "exhaustive"], capsys)
@@ -321,19 +338,27 @@ def tumbler_sfm(shared_data, tmp_path_factory) -> tuple[Path, dict]:
 
 
 def test_tumbler_thumbnails_register_and_align(shared_data, tumbler_sfm):
-    """At 200x150 the thumbnail settings tie 57 of tumbler's 77 photos together (COLMAP's
-    defaults 21; the 90% asked for is not reached at this size, docs/sfm.md). The cameras
-    that register match the given model's up to a similarity: half within 2% of the
-    extent. The largest error, 58.jpg's, is where the given model gives that photo a focal
-    length 11% below the others' (529 px against a median of 593), which one shared
-    camera can't follow."""
+    """At 200x150 incremental mapping ties 57 of tumbler's 77 photos together (with the
+    thumbnail settings; COLMAP's defaults 21): a jump to top-down views leaves one pair
+    with 19 inliers between the two halves. `--mapper auto` then runs the global mapper,
+    which registers 75 (97%). The cameras match the given model's up to a similarity
+    (measured: median 4.2%, nine in ten under 8.2%, all under 13.7% of the extent; the 2%
+    asked for is not met, docs/sfm.md), and agree with the incremental model's where both
+    register (median 1.0%)."""
     out, summary = tumbler_sfm
     assert summary["images_given"] == 77 and summary["matcher"] == "exhaustive" and summary["thumbnail_settings"]
-    assert summary["images_registered"] >= 50
+    assert summary["mapper"] == "global" and summary["mappers_tried"]["incremental"] < 70
+    assert summary["images_registered"] >= 70  # 90% of 77
     report = compare_centres(camera_centres(out / "sparse" / "0"), camera_centres(shared_data / "tumbler" / "sparse" / "0"))
     assert report["common"] == summary["images_registered"]
     errors = np.array(list(report["per_image"].values()))
-    assert report["median_error"] < 0.025 and np.percentile(errors, 90) < 0.05 and report["max_error"] < 0.12, report
+    assert report["median_error"] < 0.05 and np.percentile(errors, 90) < 0.10 and report["max_error"] < 0.16, report
+    # Where the incremental mapper's largest model registers the same photos, the two agree.
+    models = [camera_centres(d) for d in sorted((out / "colmap" / "models").iterdir())]
+    largest = max(models, key=len)
+    assert len(largest) == summary["mappers_tried"]["incremental"]
+    agreement = compare_centres(camera_centres(out / "sparse" / "0"), largest)
+    assert agreement["common"] == len(largest) and agreement["median_error"] < 0.02, agreement
 
 
 def _subset_of_given_model(shared_data: Path, names: set[str], folder: Path) -> Path:
@@ -353,8 +378,9 @@ def _subset_of_given_model(shared_data: Path, names: set[str], folder: Path) -> 
 
 @pytest.mark.slow
 def test_training_on_the_sfm_model_matches_the_given_model(shared_data, tumbler_sfm, tmp_path):
-    """Same images, same steps: the PSNR on the held-out views is within 0.5 dB (measured
-    −0.33 dB at this seed; seeds 1 and 2 +0.30 and −0.33, docs/sfm.md)."""
+    """Same images, same steps: the PSNR on the held-out views is no more than 0.5 dB below
+    the given model's (measured on the global mapper's 75 photos, seeds 0-4: +0.95, +0.95,
+    −0.23, +0.25, −0.10 dB, docs/sfm.md; a short training's spread is large both ways)."""
     from promptgs_engine.config import TrainConfig
     from promptgs_engine.train import run_training
 
@@ -365,4 +391,4 @@ def test_training_on_the_sfm_model_matches_the_given_model(shared_data, tumbler_
     for label, dataset in (("sfm", out), ("given", given)):
         cfg = TrainConfig(dataset=str(dataset), out=str(tmp_path / f"run_{label}"), iterations=300, checkpoint_every=0, sh_degree=1)
         psnr[label] = run_training(cfg, quiet=True)["psnr"]
-    assert abs(psnr["sfm"] - psnr["given"]) < 0.5, psnr
+    assert psnr["sfm"] > psnr["given"] - 0.5, psnr

@@ -2,6 +2,7 @@
 
     promptgs sfm INPUT --out DATASET [--max-image-size PX] [--single-camera | --per-image-camera]
                  [--camera-model MODEL] [--matcher auto|exhaustive|sequential] [--overlap N]
+                 [--mapper auto|incremental|global]
                  [--fps F] [--max-frames N] [--min-registered FRACTION] [--overwrite]
                  [--events] [--quiet]
 
@@ -44,6 +45,9 @@ def add_sfm_options(p: argparse.ArgumentParser) -> None:
                    help=f"COLMAP camera model the mapper fits (default {d.camera_model}; the output is undistorted to PINHOLE)")
     g.add_argument("--matcher", default=d.matcher, choices=["auto", "exhaustive", "sequential"],
                    help="image pairs to match: every pair, or neighbours in name/time order plus loop pairs (auto: exhaustive up to 150 photos, sequential for more and for a video)")
+    g.add_argument("--mapper", default=d.mapper, choices=["auto", "incremental", "global"],
+                   help="incremental (COLMAP's), global (GLOMAP's), or auto: incremental, then global when more than 10%% "
+                        "of the images are left out, keeping the model with more images (default auto)")
     g.add_argument("--overlap", type=int, default=d.overlap, help=f"sequential: neighbours each image is matched with (default {d.overlap})")
     g.add_argument("--fps", type=float, default=d.fps, help=f"video: frames kept per second, the sharpest of each window (default {d.fps:g})")
     g.add_argument("--max-frames", type=int, help="video: keep at most this many frames")
@@ -58,6 +62,7 @@ def sfm_options_from_args(args: argparse.Namespace) -> SfmOptions:
         camera_model=args.camera_model,
         camera_mode=args.camera_mode,
         matcher=args.matcher,
+        mapper=args.mapper,
         overlap=args.overlap,
         fps=args.fps,
         max_frames=args.max_frames,
@@ -71,7 +76,7 @@ def add_parser(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "sfm",
         help="cameras and points from a folder of photos or a video (pycolmap), written as a dataset to train on",
-        description="Structure from motion with pycolmap: SIFT features, matching, incremental mapping, undistortion "
+        description="Structure from motion with pycolmap: SIFT features, matching, incremental or global mapping, undistortion "
         "to PINHOLE. Writes DATASET/images and DATASET/sparse/0 (what `promptgs train` reads) and "
         "DATASET/sfm_summary.json. See docs/sfm.md.",
     )
