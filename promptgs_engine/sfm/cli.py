@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from .pipeline import CAMERA_MODELS, SfmOptions
+from .pipeline import CAMERA_MODELS, MAPPERS, SfmOptions
 
 
 def _size(text: str) -> int | None:
@@ -45,7 +45,7 @@ def add_sfm_options(p: argparse.ArgumentParser) -> None:
                    help=f"COLMAP camera model the mapper fits (default {d.camera_model}; the output is undistorted to PINHOLE)")
     g.add_argument("--matcher", default=d.matcher, choices=["auto", "exhaustive", "sequential"],
                    help="image pairs to match: every pair, or neighbours in name/time order plus loop pairs (auto: exhaustive up to 150 photos, sequential for more and for a video)")
-    g.add_argument("--mapper", default=d.mapper, choices=["auto", "incremental", "global"],
+    g.add_argument("--mapper", default=d.mapper, choices=MAPPERS,
                    help="incremental (COLMAP's), global (GLOMAP's), or auto: incremental, then global when more than 10%% "
                         "of the images are left out, keeping the model with more images (default auto)")
     g.add_argument("--overlap", type=int, default=d.overlap, help=f"sequential: neighbours each image is matched with (default {d.overlap})")
