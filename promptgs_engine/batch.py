@@ -209,8 +209,9 @@ class BatchedSteps:
         if delta is not None:
             t.strategy._update_state(t.params, delta, info, packed=False)
         with torch.no_grad():
-            mse = float(((img.detach() - gt) ** 2).mean())
-        return float(loss.detach()), mse
+            mse = ((img.detach() - gt) ** 2).mean()
+        loss_value, mse_value = torch.stack([loss.detach(), mse]).tolist()  # one read of the device
+        return loss_value, mse_value
 
     def _merge_statistics(self, delta: dict[str, Any], summed: list[torch.Tensor]) -> None:
         t = self.trainer

@@ -230,7 +230,7 @@ class PromptFocus:
             cw, ch = max(min(w, cam.width), 16), max(min(h, cam.height), 16)
             cx0 = min(max((x0 + x1) // 2 - cw // 2, 0), cam.width - cw)
             cy0 = min(max((y0 + y1) // 2 - ch // 2, 0), cam.height - ch)
-            gt = cam.load_image()[cy0 : cy0 + ch, cx0 : cx0 + cw]
+            gt = cam.load_image(window=(cx0, cy0, cw, ch))
             out.append(TrainView(crop_camera(cam, cx0, cy0, cw, ch), gt, v, crop=True))
         # A batch renders at one size: keep the views whose crop matches the first.
         size = (out[0].camera.width, out[0].camera.height)

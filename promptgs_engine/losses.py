@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
 
@@ -170,11 +172,18 @@ def d_ssim(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     return 1.0 - ssim(img, ref)
 
 
+@functools.lru_cache(maxsize=8)
+def _sobel_x(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """The 3×3 Sobel filter for d/dx, made once per dtype and device (a tensor built from
+    Python numbers on a GPU is a copy the host waits for)."""
+    return torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=dtype, device=device)
+
+
 def sobel_magnitude(img: torch.Tensor) -> torch.Tensor:
     """Gradient magnitude of each channel with 3×3 Sobel filters, [B, H, W, C]."""
     x = img.permute(0, 3, 1, 2)
     c = x.shape[1]
-    gx = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=x.dtype, device=x.device)
+    gx = _sobel_x(x.dtype, x.device)
     kx = gx.view(1, 1, 3, 3).expand(c, 1, 3, 3)
     ky = gx.t().reshape(1, 1, 3, 3).expand(c, 1, 3, 3)
     xp = F.pad(x, (1, 1, 1, 1), mode="replicate")

@@ -302,7 +302,10 @@ class Trainer:
         loss, l1_map, dssim_map = self.image_loss(img, gt)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
         loss.backward()
-        loss_value = loss.item()
+        # The loss and the image's MSE in one read: on a GPU each read waits for the device.
+        with torch.no_grad():
+            mse = ((img.detach() - gt) ** 2).mean()
+        loss_value, mse_value = torch.stack([loss.detach(), mse]).tolist()
         if not math.isfinite(loss_value):
             raise TrainingError(f"step {step}: the loss is {loss_value} (camera {cameras[0].name})")
         if self.focus is not None:
@@ -311,9 +314,7 @@ class Trainer:
                 out[..., 3].detach() if with_depth else None, alpha[..., 0].detach(), info,
             )
         self.update(step, info)
-        with torch.no_grad():
-            mse = float(((img.detach() - gt) ** 2).mean())
-        return StepResult(loss=loss_value, psnr=mse_to_psnr(mse))
+        return StepResult(loss=loss_value, psnr=mse_to_psnr(mse_value))
 
     def update(self, step: int, info: dict) -> None:
         """Apply the step's gradients, then the schedules, the strategy's refinement and

@@ -144,6 +144,15 @@ def test_downscaled_camera_matches_downscaled_image(tumbler4: Scene) -> None:
     assert torch.equal(cam.downscaled(2).downscaled(2).load_image(), img)
 
 
+def test_a_window_of_an_image_is_the_crop_of_the_whole(tumbler4: Scene) -> None:
+    cam = tumbler4.train_cameras[0]
+    full = cam.load_image()
+    assert torch.equal(cam.load_image(window=(10, 7, 40, 30)), full[7:37, 10:50])
+    assert torch.equal(cam.load_image(2, window=(1, 2, 5, 4)), cam.load_image(2)[2:6, 1:6])
+    with pytest.raises(ValueError, match="window"):
+        cam.load_image(window=(cam.width - 5, 0, 10, 10))
+
+
 def test_image_cache_is_bounded(tumbler4: Scene) -> None:
     cams = tumbler4.train_cameras[:6]
     one = 150 * 200 * 3

@@ -143,12 +143,25 @@ def preload_images(items: list[tuple[Path, int, int]], threads: int = 1, cache: 
     return True
 
 
-def load_image_tensor(path: Path, downscale: int, expected_size: tuple[int, int]) -> torch.Tensor:
-    """[H, W, 3] float32 in [0, 1]; checks the decoded size is `expected_size` (W, H)."""
+def load_image_tensor(
+    path: Path,
+    downscale: int,
+    expected_size: tuple[int, int],
+    window: tuple[int, int, int, int] | None = None,
+) -> torch.Tensor:
+    """[H, W, 3] float32 in [0, 1]; checks the decoded size is `expected_size` (W, H).
+
+    ``window`` (x0, y0, width, height) cuts a crop out of the 8-bit image before it
+    becomes float, so that a crop costs its own pixels, not the whole image's."""
     arr = IMAGE_CACHE.get(path, downscale)
     h, w = arr.shape[:2]
     if (w, h) != tuple(expected_size):
         raise DatasetError(
             f"{path}: image is {w}x{h} at downscale {downscale}, expected {expected_size[0]}x{expected_size[1]}"
         )
+    if window is not None:
+        x0, y0, cw, ch = window
+        if x0 < 0 or y0 < 0 or x0 + cw > w or y0 + ch > h:
+            raise ValueError(f"{path}: window {window} is not inside the {w}x{h} image")
+        arr = arr[y0 : y0 + ch, x0 : x0 + cw]
     return torch.from_numpy(arr.astype(np.float32)).div_(255.0)

@@ -28,11 +28,12 @@ class Camera:
     image_path: Path
     downscale: int = 1  # factor this camera already is below the image file's resolution
 
-    def load_image(self, downscale: int = 1) -> torch.Tensor:
-        """[height // downscale, width // downscale, 3] float32 in [0, 1] (box-filtered)."""
+    def load_image(self, downscale: int = 1, window: tuple[int, int, int, int] | None = None) -> torch.Tensor:
+        """[height // downscale, width // downscale, 3] float32 in [0, 1] (box-filtered);
+        ``window`` (x0, y0, width, height) takes a crop of it (`images.load_image_tensor`)."""
         factor = self.downscale * int(downscale)
         size = (self.width // int(downscale), self.height // int(downscale))
-        return load_image_tensor(self.image_path, factor, size)
+        return load_image_tensor(self.image_path, factor, size, window=window)
 
     def downscaled(self, factor: int) -> "Camera":
         """The same view at size (width // factor, height // factor) with K divided by factor.

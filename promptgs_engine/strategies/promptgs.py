@@ -172,7 +172,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
     def inside_prompts(self, means: torch.Tensor) -> torch.Tensor:
         if not self.prompts:
             return torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
-        return boxes_contain(self.prompts, means.detach().cpu()).any(dim=0).to(means.device)
+        return boxes_contain(self.prompts, means.detach()).any(dim=0)
 
     # -- statistics -------------------------------------------------------------------
 
@@ -198,7 +198,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         votes_outside = info.get("votes_outside", not info.get("crop_step", False))
         if not votes_outside and state.get("grad2d") is not None:
             outside = ~self.inside_prompts(params["means"])
-            saved = state["grad2d"][outside].clone(), state["count"][outside].clone()
+            saved = state["grad2d"].clone(), state["count"].clone()
         if float(info.get("downscale", 1.0)) > 1.0:
             # A low-resolution step trains but does not vote for growth.
             for key in ("grad2d", "count"):
@@ -207,8 +207,9 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             self._ensure_state(params, state)
             return
         super()._update_state(params, state, info, packed=packed)
-        if saved is not None:
-            state["grad2d"][outside], state["count"][outside] = saved
+        if saved is not None:  # outside, the statistics as they were (no masked read: no wait on a GPU)
+            for key, before in zip(("grad2d", "count"), saved):
+                state[key].copy_(torch.where(outside, before, state[key]))
         self._ensure_state(params, state)
         if "view_loss" not in info:
             return
