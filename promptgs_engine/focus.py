@@ -278,20 +278,21 @@ class PromptFocus:
         steps, feed the error field. ``l1_map`` and ``dssim_map`` are [C, H, W] (the maps
         the training loss was computed from, detached); ``depth`` [C, H, W] is needed on
         the steps that `feeds_field`, and may be None on the others."""
-        gts = torch.stack([v.gt for v in views]).to(rendered.device)
-        view_loss = torch.stack(
-            [
-                LAMBDA_L1 * l1_map[i].mean() + LAMBDA_DSSIM * dssim_map[i].mean() + LAMBDA_EDGE * edge_loss(rendered[i : i + 1], gts[i : i + 1])
-                for i in range(len(views))
-            ]
-        )
-        info["view_loss"] = view_loss
         info["error_map"] = l1_map
         info["crop_step"] = any(v.crop for v in views)
         # Only statistics steps vote for growth outside the prompts (see is_statistics_step).
         info["votes_outside"] = all(v.statistics for v in views)
         # Below full resolution (progressive schedule); a crop is at full resolution.
         info["downscale"] = 1.0 if info["crop_step"] else self.full_cameras[views[0].source].width / views[0].camera.width
+        if self.trainer.strategy.takes_statistics(step, info):  # the per-view losses weigh the scores
+            gts = torch.stack([v.gt for v in views]).to(rendered.device)
+            info["view_loss"] = torch.stack(
+                [
+                    LAMBDA_L1 * l1_map[i].mean() + LAMBDA_DSSIM * dssim_map[i].mean()
+                    + LAMBDA_EDGE * edge_loss(rendered[i : i + 1], gts[i : i + 1])
+                    for i in range(len(views))
+                ]
+            )
         if not self.feeds_field(step):
             return
         loss_map = 0.8 * l1_map + 0.2 * dssim_map

@@ -176,6 +176,18 @@ class PromptGSStrategy(ResettingDefaultStrategy):
 
     # -- statistics -------------------------------------------------------------------
 
+    @staticmethod
+    def low_resolution(info: dict) -> bool:
+        """A step rendered below full size (progressive schedule): it trains but takes no
+        statistics."""
+        return float(info.get("downscale", 1.0)) > 1.0
+
+    def takes_statistics(self, step: int, info: dict) -> bool:
+        """Whether `step_post_backward` will read this step's statistics, ``view_loss``
+        among them: gsplat's rule (before ``refine_stop_iter``) and ours (not at low
+        resolution). The trainer computes the per-view losses only then."""
+        return step < self.refine_stop_iter and not self.low_resolution(info)
+
     def _ensure_state(self, params, state) -> None:
         n = params["means"].shape[0]
         device = params["means"].device
@@ -199,7 +211,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         if not votes_outside and state.get("grad2d") is not None:
             outside = ~self.inside_prompts(params["means"])
             saved = state["grad2d"].clone(), state["count"].clone()
-        if float(info.get("downscale", 1.0)) > 1.0:
+        if self.low_resolution(info):
             # A low-resolution step trains but does not vote for growth.
             for key in ("grad2d", "count"):
                 if state.get(key) is None:
