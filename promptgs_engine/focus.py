@@ -274,7 +274,8 @@ class PromptFocus:
         alpha: torch.Tensor,
         info: dict,
     ) -> None:
-        """Per-view losses and per-pixel errors for the strategy; every ``field_every``
+        """Per-pixel errors for the strategy, and per-view losses on the steps whose
+        statistics it takes (`PromptGSStrategy.takes_statistics`); every ``field_every``
         steps, feed the error field. ``l1_map`` and ``dssim_map`` are [C, H, W] (the maps
         the training loss was computed from, detached); ``depth`` [C, H, W] is needed on
         the steps that `feeds_field`, and may be None on the others."""
