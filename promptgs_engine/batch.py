@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from .errors import TrainingError
-from .metrics import mse_to_psnr
+from .metrics import loss_and_mse, mse_to_psnr
 from .strategies import DefaultSchedule
 from .strategies.default import STATISTICS_MERGED
 
@@ -208,10 +208,7 @@ class BatchedSteps:
             field_points += [(index, pts, vals) for pts, vals in sink]
         if delta is not None:
             t.strategy._update_state(t.params, delta, info, packed=False)
-        with torch.no_grad():
-            mse = ((img.detach() - gt) ** 2).mean()
-        loss_value, mse_value = torch.stack([loss.detach(), mse]).tolist()  # one read of the device
-        return loss_value, mse_value
+        return loss_and_mse(loss, img, gt)
 
     def _merge_statistics(self, delta: dict[str, Any], summed: list[torch.Tensor]) -> None:
         t = self.trainer

@@ -18,6 +18,15 @@ def mse_to_psnr(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
+def loss_and_mse(loss: torch.Tensor, img: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:
+    """A training step's loss and its image's MSE against ``ref`` as Python numbers, read
+    from the device together: on a GPU each read makes the host wait."""
+    with torch.no_grad():
+        mse = ((img.detach() - ref) ** 2).mean()
+    loss_value, mse_value = torch.stack([loss.detach(), mse]).tolist()
+    return loss_value, mse_value
+
+
 def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
     return mse_to_psnr(float(((img - ref) ** 2).mean()))
 

@@ -31,7 +31,7 @@ from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
-from .metrics import mse_to_psnr
+from .metrics import loss_and_mse, mse_to_psnr
 from .render import render
 from .sky import sky_points
 from .strategies import DefaultSchedule, make_default_strategy
@@ -302,10 +302,7 @@ class Trainer:
         loss, l1_map, dssim_map = self.image_loss(img, gt)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
         loss.backward()
-        # The loss and the image's MSE in one read: on a GPU each read waits for the device.
-        with torch.no_grad():
-            mse = ((img.detach() - gt) ** 2).mean()
-        loss_value, mse_value = torch.stack([loss.detach(), mse]).tolist()
+        loss_value, mse_value = loss_and_mse(loss, img, gt)
         if not math.isfinite(loss_value):
             raise TrainingError(f"step {step}: the loss is {loss_value} (camera {cameras[0].name})")
         if self.focus is not None:

@@ -201,6 +201,13 @@ class PromptGSStrategy(ResettingDefaultStrategy):
     def _update_state(self, params, state, info, packed: bool = False) -> None:
         if info.get(STATISTICS_MERGED):  # a batched step added its views' statistics (batch.py)
             return
+        if self.low_resolution(info):
+            # A low-resolution step trains but does not vote for growth.
+            for key in ("grad2d", "count"):
+                if state.get(key) is None:
+                    state[key] = torch.zeros(params["means"].shape[0], device=params["means"].device)
+            self._ensure_state(params, state)
+            return
         # Outside the prompts, only the trainer's statistics steps (``votes_outside``:
         # whole views at full size with 3DGS's screen filter) count towards growth. A crop
         # step renders the region around a prompt at full resolution, over and over, and
@@ -211,13 +218,6 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         if not votes_outside and state.get("grad2d") is not None:
             outside = ~self.inside_prompts(params["means"])
             saved = state["grad2d"].clone(), state["count"].clone()
-        if self.low_resolution(info):
-            # A low-resolution step trains but does not vote for growth.
-            for key in ("grad2d", "count"):
-                if state.get(key) is None:
-                    state[key] = torch.zeros(params["means"].shape[0], device=params["means"].device)
-            self._ensure_state(params, state)
-            return
         super()._update_state(params, state, info, packed=packed)
         if saved is not None:  # outside, the statistics as they were (no masked read: no wait on a GPU)
             for key, before in zip(("grad2d", "count"), saved):
