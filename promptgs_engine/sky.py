@@ -6,6 +6,12 @@ growth is uneven, and a novel view shows holes (the black render background) or 
 blotches. Starting a shell of Gaussians far outside the scene, in every direction some
 training camera sees, gives the background its own Gaussians from step 0; where the
 scene stands in front of the shell they are occluded and stay harmless.
+
+The shell's Gaussians are as wide as its point spacing, which on a wide scene is over
+3DGS's world-size pruning limit (a tenth of the scene scale) from the start. The trainer
+marks them in the strategy state, and the strategies hold them to that limit as an angle
+instead (`strategies.default.too_big`): under 3DGS's rule, every shell Gaussian not yet
+split when size pruning began was removed, and the holes were the dark blotches again.
 """
 
 from __future__ import annotations
@@ -30,6 +36,15 @@ def fibonacci_directions(n: int) -> torch.Tensor:
     return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1).float()
 
 
+def shell_radius(cameras: Sequence[Camera], scene_points: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """The shell's centre (the cameras' mean centre) and radius: ``SKY_RADIUS_FACTOR``
+    times the farther of the scene points' reach (95th percentile) and the cameras'."""
+    centers = torch.stack([c.center.float() for c in cameras])
+    origin = centers.mean(dim=0)
+    reach = float(torch.quantile((scene_points.float() - origin).norm(dim=1), 0.95)) if scene_points.shape[0] else 0.0
+    return origin, SKY_RADIUS_FACTOR * max(reach, float((centers - origin).norm(dim=1).max()), 1e-3)
+
+
 def sky_points(
     cameras: Sequence[Camera], scene_points: torch.Tensor, n_directions: int = 20_000, max_image_side: int = 256
 ) -> tuple[torch.Tensor, torch.Tensor, float]:
@@ -40,10 +55,7 @@ def sky_points(
     most ``max_image_side`` pixels wide); ``spacing`` is the distance between neighbouring
     points (a size for their Gaussians).
     """
-    centers = torch.stack([c.center.float() for c in cameras])
-    origin = centers.mean(dim=0)
-    reach = float(torch.quantile((scene_points.float() - origin).norm(dim=1), 0.95)) if scene_points.shape[0] else 0.0
-    radius = SKY_RADIUS_FACTOR * max(reach, float((centers - origin).norm(dim=1).max()), 1e-3)
+    origin, radius = shell_radius(cameras, scene_points)
     dirs = fibonacci_directions(n_directions)
     points = origin + radius * dirs
     seen = torch.zeros(n_directions, dtype=torch.long)

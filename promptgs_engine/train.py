@@ -33,8 +33,9 @@ from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
 from .metrics import loss_and_mse, mse_to_psnr
 from .render import render
-from .sky import sky_points
+from .sky import shell_radius, sky_points
 from .strategies import DefaultSchedule, make_default_strategy
+from .strategies.default import BACKGROUND, BACKGROUND_RADIUS
 from .strategies.promptgs import PromptGSStrategy
 
 log = logging.getLogger("promptgs.train")
@@ -166,6 +167,12 @@ class Trainer:
         self._probe_views: list[tuple[Camera, torch.Tensor]] | None = None
         self.strategy.check_sanity(self.params, self.optimizers)
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene.extent)
+        if self.n_sky_points:
+            # The shell's Gaussians, for the strategy's size limit (strategies.default.too_big).
+            background = torch.zeros(self.n_gaussians, device=self.device)
+            background[-self.n_sky_points :] = 1.0
+            self.strategy_state[BACKGROUND] = background
+            self.strategy_state[BACKGROUND_RADIUS] = shell_radius(self.scene.train_cameras, self.scene.points.float())[1]
         self.step = 0
         self.train_seconds = 0.0
         self._order: list[int] = []

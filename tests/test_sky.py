@@ -1,5 +1,7 @@
 import math
 
+import pytest
+
 import numpy as np
 import torch
 from PIL import Image
@@ -72,3 +74,49 @@ def test_extrapolated_directions_continue_the_nearest_seen_colour(tmp_path):
     beyond = elevation > seen_top + 2  # no camera sees these
     assert bool(beyond.any())
     assert torch.allclose(colors[beyond], torch.tensor(SKY).expand(int(beyond.sum()), 3), atol=0.01)
+
+
+def _pruning_setup(sizes, background):
+    from promptgs_engine.gaussians import init_from_points
+    from promptgs_engine.strategies import DefaultSchedule, make_default_strategy
+    from promptgs_engine.strategies.default import BACKGROUND, BACKGROUND_RADIUS
+    from promptgs_engine.config import TrainConfig
+    from promptgs_engine.train import make_optimizers
+
+    n = len(sizes)
+    params = init_from_points(torch.arange(3.0 * n).reshape(n, 3), torch.full((n, 3), 0.5), sh_degree=0, init_opacity=0.5)
+    with torch.no_grad():
+        params["scales"].copy_(torch.log(torch.tensor(sizes)).unsqueeze(-1).expand(n, 3))
+    opts = make_optimizers(params, TrainConfig(dataset="d", out="o"), extent=1.0)
+    strategy = make_default_strategy("3dgs", DefaultSchedule.for_iterations(1000))
+    state = strategy.initialize_state(scene_scale=1.0)  # 3DGS's limit: 0.1
+    state[BACKGROUND] = torch.tensor(background)
+    state[BACKGROUND_RADIUS] = 10.0  # the shell's limit: 0.1 × 10 = 1.0
+    return strategy, params, opts, state
+
+
+def test_pruning_by_size_keeps_the_background_shell_within_its_own_angular_limit():
+    # Scene Gaussians of size 0.05 and 0.5, shell Gaussians of size 0.5 and 2.0: 3DGS's
+    # limit (0.1 × scene scale) removes the scene's 0.5; the shell's 0.5 is within the
+    # same limit taken as an angle at the shell's radius, its 2.0 is not.
+    strategy, params, opts, state = _pruning_setup([0.05, 0.5, 0.5, 2.0], [0.0, 0.0, 1.0, 1.0])
+    assert strategy._prune_gs(params, opts, state, step=strategy.reset_every + 1) == 2
+    assert torch.exp(params["scales"][:, 0]).tolist() == pytest.approx([0.05, 0.5])
+    assert state["background"].tolist() == [0.0, 1.0]
+    # Before the first reset only faint Gaussians go, as in 3DGS.
+    strategy, params, opts, state = _pruning_setup([0.05, 0.5, 0.5, 2.0], [0.0, 0.0, 1.0, 1.0])
+    assert strategy._prune_gs(params, opts, state, step=strategy.reset_every) == 0
+
+
+def test_the_trainer_marks_the_background_shell_for_the_strategy(toy, tmp_path):
+    from promptgs_engine.config import TrainConfig
+    from promptgs_engine.strategies.default import BACKGROUND, BACKGROUND_RADIUS
+    from promptgs_engine.train import Trainer
+
+    trainer = Trainer(TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=10, sky=True), quiet=True)
+    marks = trainer.strategy_state[BACKGROUND]
+    assert trainer.n_sky_points > 0 and int(marks.sum()) == trainer.n_sky_points
+    assert bool((marks[-trainer.n_sky_points :] == 1).all())
+    centre = torch.stack([c.center.float() for c in trainer.scene.train_cameras]).mean(dim=0)
+    shell = trainer.params["means"][-trainer.n_sky_points :].detach()
+    assert float((shell - centre).norm(dim=1).mean()) == pytest.approx(trainer.strategy_state[BACKGROUND_RADIUS], rel=1e-4)

@@ -15,11 +15,17 @@ from typing import Any, ClassVar
 
 import torch
 from gsplat.strategy import DefaultStrategy
-from gsplat.strategy.ops import duplicate, reset_opa, split
+from gsplat.strategy.ops import duplicate, remove, reset_opa, split
 
 STRATEGY_NAMES = ("3dgs", "absgs", "promptgs")
 # Flag in the info of a batched step whose statistics are in the state already (batch.py).
 STATISTICS_MERGED = "statistics_merged"
+
+# Strategy state of the far background shell (sky.py), set by the trainer: BACKGROUND is
+# 1.0 for the shell's Gaussians (carried through growth and pruning like every per-Gaussian
+# state), BACKGROUND_RADIUS the shell's radius.
+BACKGROUND = "background"
+BACKGROUND_RADIUS = "background_radius"
 
 # Step counts of the 3DGS paper's schedule for a 30k-step run.
 _REFERENCE_ITERATIONS = 30_000
@@ -135,8 +141,20 @@ class ResettingDefaultStrategy(DefaultStrategy):
                 ab["frozen_at"] = n
         ab["last_reset"] = {"step": step, "loss": loss, "n": n}
 
+    @torch.no_grad()
     def _prune_gs(self, params, optimizers, state, step) -> int:
-        n_prune = super()._prune_gs(params, optimizers, state, step)
+        """gsplat's pruning (faint Gaussians; after the first reset, those too big in the
+        world or, while ``refine_scale2d_stop_iter`` lasts, on screen), with the far
+        background measured by `too_big`."""
+        is_prune = torch.sigmoid(params["opacities"].flatten()) < self.prune_opa
+        if step > self.reset_every:
+            is_too_big = too_big(params, state, self.prune_scale3d)
+            if step < self.refine_scale2d_stop_iter:
+                is_too_big |= state["radii"] > self.prune_scale2d
+            is_prune = is_prune | is_too_big
+        n_prune = int(is_prune.sum())
+        if n_prune > 0:
+            remove(params=params, optimizers=optimizers, state=state, mask=is_prune)
         if self.keeps_default_ledger:
             state.setdefault("ledger", new_default_ledger())["pruned"] += n_prune
         return n_prune
@@ -158,6 +176,24 @@ class ResettingDefaultStrategy(DefaultStrategy):
             ledger["grown"] += int(grow.sum())
             ledger["refinements"].append({"step": int(step), "n": int(params["means"].shape[0]), "grown": int(grow.sum())})
         return grow_selected(params, optimizers, state, grow, self.grow_scale3d, self.revised_opacity)
+
+
+def too_big(params, state: dict[str, Any], prune_scale3d: float) -> torch.Tensor:
+    """bool [N]: Gaussians too big in the world to keep, 3DGS's rule: largest scale over
+    ``prune_scale3d`` × the scene scale.
+
+    The far background shell (`sky.py`, ``state["background"]``) lies at twice the scene's
+    reach, and its Gaussians start as wide as its point spacing, which can be over that
+    limit from the first step: 3DGS's rule would remove every one not yet split when
+    pruning by size begins, and the novel views' sky would show the black render
+    background through the holes. They are held to the same limit as an angle instead,
+    ``prune_scale3d`` × the shell's radius."""
+    size = torch.exp(params["scales"]).max(dim=-1).values
+    big = size > prune_scale3d * state["scene_scale"]
+    background = state.get(BACKGROUND)
+    if background is not None and background.shape[0] == size.shape[0]:
+        big = torch.where(background > 0, size > prune_scale3d * float(state[BACKGROUND_RADIUS]), big)
+    return big
 
 
 def accumulate_grad2d(state: dict[str, Any], info: dict[str, Any], key: str, absgrad: bool, n: int) -> None:

@@ -74,7 +74,7 @@ from gsplat.strategy.ops import _update_param_with_optimizer, remove
 
 from ..gaussians import rgb_to_sh
 from ..prompts import PromptBox, boxes_contain
-from .default import STATISTICS_MERGED, ResettingDefaultStrategy
+from .default import STATISTICS_MERGED, ResettingDefaultStrategy, too_big
 
 # Above this fraction of the Gaussians inside the prompts, growth there uses the normal
 # 3DGS threshold (see growth_candidates).
@@ -355,8 +355,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         self._ensure_state(params, state)
         is_prune = torch.sigmoid(params["opacities"].flatten()) < self.prune_opa
         if step > self.reset_every:
-            is_too_big = torch.exp(params["scales"]).max(dim=-1).values > self.prune_scale3d * state["scene_scale"]
-            is_prune = is_prune | is_too_big
+            is_prune = is_prune | too_big(params, state, self.prune_scale3d)
         young = (step - state["born"]) < self.protect_steps
         inside = self.inside_prompts(params["means"])
         protected = young & inside
