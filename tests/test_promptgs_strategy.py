@@ -135,8 +135,8 @@ def test_a_prompt_holding_most_of_the_scene_does_not_lower_the_threshold():
 def test_outside_the_prompts_the_largest_gradients_grow_not_the_highest_scores():
     # Two outside candidates: one near the camera with a huge score (near, opaque, big on
     # screen) and a gradient just over the threshold, one far with a gradient twice as
-    # large. One Gaussian was resampled into the prompt, so one outside candidate gives
-    # way: the larger gradient grows.
+    # large. One Gaussian is owed from an earlier refinement, so one outside candidate
+    # gives way: the larger gradient grows.
     pts = torch.tensor([[3.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
     params, opts = _params(pts)
     s, state = _strategy([UNIT_BOX])
@@ -146,12 +146,12 @@ def test_outside_the_prompts_the_largest_gradients_grow_not_the_highest_scores()
     info["radii"] = torch.tensor([[[40, 40], [1, 1]]], dtype=torch.int32)
     for _ in range(s.outside_min_votes):  # enough statistics steps to vote outside
         s._update_state(params, state, info)
-    s.record_resampled(state, 1)
+    state["debt"] = 1
     score, _ = s.per_gaussian(params, state)
     assert score[0] > score[1]
     assert s._grow_gs(params, opts, state, step=100) == (1, 0)
     assert torch.equal(params["means"][-1].detach(), pts[1])
-    assert state["resampled"] == 0  # counted once, at the refinement that gave way
+    assert state["debt"] == 0
 
 
 def _prompt_and_outside_candidates(n_outside=3, **kw):
@@ -212,20 +212,46 @@ def test_what_outside_growth_cannot_offset_is_carried_to_the_next_refinement():
     assert int(keep.sum()) == 1 and state["debt"] == 0
 
 
-def test_resampled_gaussians_that_stay_faint_are_removed_and_repay_their_cost():
+def test_resampled_gaussians_cost_outside_growth_once_they_have_stayed():
+    # Three Gaussians resampled into the box at step 100, two that became opaque and one
+    # still faint; three outside candidates. At the refinement one interval later, the two
+    # that stayed are offset (the two weakest outside candidates give way) and the faint
+    # one costs nothing; at the next refinement the two are not charged again.
+    pts = _box_and_outside(3, 3)
+    params, opts = _params(pts)
+    with torch.no_grad():
+        params["opacities"][2] = math.log(0.02 / 0.98)
+    s, state = _strategy([UNIT_BOX])
+    s._ensure_state(params, state)
+    state["carved"][:3] = 1.0
+    state["born"][:3] = 100.0
+    s.record_resampled(state, 3)
+    grads = torch.cat([torch.zeros(3), torch.tensor([1.5, 2.0, 2.5]), torch.zeros(FILLER)])
+    _set_stats(s, state, params, torch.ones(6 + FILLER), grads)
+    early = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=150)
+    assert early.nonzero().flatten().tolist() == [3, 4, 5]  # not a refinement interval old yet
+    _set_stats(s, state, params, torch.ones(6 + FILLER), grads)
+    grow = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=200)
+    assert grow.nonzero().flatten().tolist() == [5]
+    assert state["ledger"]["refinements"][-1]["resampled_stayed"] == 2 and state["debt"] == 0
+    _set_stats(s, state, params, torch.ones(6 + FILLER), grads)
+    again = s.growth_candidates(params, state, state["grad2d"] / state["count"], step=300)
+    assert again.nonzero().flatten().tolist() == [3, 4, 5]
+
+
+def test_resampled_gaussians_that_stay_faint_are_removed():
     pts = _box_and_outside(4)
     params, opts = _params(pts, opacity=0.02)  # all faint, under carve_keep_opacity
     s, state = _strategy([UNIT_BOX], protect_steps=10_000)
     s._ensure_state(params, state)
     state["carved"][:2] = 1.0  # the first two were resampled, at step 100
     state["born"][:] = 100.0
-    state["debt"] = 5
     # Right after an opacity reset nothing is judged; one refinement interval later the
     # faint resampled ones go, though young Gaussians in prompts are otherwise protected.
     s.reset_every = 1000
     assert int(s.idle_resampled(params, state, step=1050).sum()) == 0
     assert s._prune_gs(params, opts, state, step=1200) == 2
-    assert params["means"].shape[0] == 3 + FILLER and state["debt"] == 3
+    assert params["means"].shape[0] == 3 + FILLER
     assert state["ledger"]["resampled_removed"] == 2
 
 

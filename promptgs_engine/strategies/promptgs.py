@@ -23,11 +23,11 @@ the opacity reset applied). Inside them:
   gradient threshold selects anything inside the prompts.
 * **Outside the prompts**, growth is 3DGS's rule (mean view-space gradient over 3DGS's
   threshold), less what the prompts add beyond that rule: the prompts' growth over what
-  the rule would have grown inside them, and the Gaussians resampled since the last
-  refinement. The outside candidates with the smallest gradients give way, and what they
-  cannot offset is carried to the next refinement (``state["debt"]``): the prompts move
-  Gaussians to where they point rather than add them. A ``budget`` caps the total,
-  prompt Gaussians first.
+  the rule would have grown inside them, and the resampled Gaussians that have stayed
+  (`resampled_that_stayed`). The outside candidates with the smallest gradients give
+  way, and what they cannot offset is carried to the next refinement
+  (``state["debt"]``): the prompts move Gaussians to where they point rather than add
+  them. A ``budget`` caps the total, prompt Gaussians first.
 * **Growth statistics as 3DGS measures them.** A whole-view step below full size
   (``info["downscale"] > 1``) trains but adds nothing to the statistics. Outside the
   prompts only the trainer's statistics steps vote (``info["votes_outside"]``: whole
@@ -48,9 +48,12 @@ the opacity reset applied). Inside them:
   fewer than three, tried first, is harsher (docs/promptgs.md).
 * **Resampled Gaussians earn their keep** (`idle_resampled`): one that is still under
   ``carve_keep_opacity`` (0.05) a refinement interval after it came, and after the last
-  opacity reset, is removed at the next refinement, and its cost is paid back to the
-  debt. Carving adds up to a thousand points a round where the render is wrong; most land
-  on surfaces that the rest of the model fits soon after.
+  opacity reset, is removed at the next refinement. Carving adds up to a thousand points
+  a round where the render is wrong; most land on surfaces that the rest of the model
+  fits soon after. Only those that stay cost outside growth, once, when they are judged
+  (the ledger's ``resampled_stayed``): charged on arrival, a round that was mostly removed
+  a refinement later had held back 3DGS's growth outside early in training, where growth
+  compounds.
 * **Protection.** Other Gaussians born inside a prompt (by growth or resampling) are not
   pruned for ``protect_steps`` steps, so the first opacity prune does not remove an
   object before it has been seen from enough views.
@@ -153,7 +156,8 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         # score / error: sums over the views that saw each Gaussian; views: how many.
         # (gsplat's own `count` is zeroed at every refinement, these are not.)
         # carved: 1 for Gaussians that resampling added (and their grown copies).
-        state.update({"score": None, "error": None, "views": None, "born": None, "carved": None})
+        # charged: 1 for resampled Gaussians already offset against outside growth.
+        state.update({"score": None, "error": None, "views": None, "born": None, "carved": None, "charged": None})
         # Gaussians resampled into the prompts since the last refinement.
         state["resampled"] = 0
         # Prompt growth 3DGS's rule would not make, not yet offset by outside growth.
@@ -194,7 +198,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         for key in ("score", "error", "views"):
             if state[key] is None:
                 state[key] = torch.zeros(n, device=device)
-        for key in ("born", "carved"):
+        for key in ("born", "carved", "charged"):
             if state.get(key) is None:
                 state[key] = torch.zeros(n, device=device)
 
@@ -274,7 +278,10 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         n_rule_in = int((rule & inside).sum())
         resampled = int(state.get("resampled", 0))
         state["resampled"] = 0
-        extra = max(int(chosen_in.sum()) - n_rule_in, 0) + resampled + int(state.get("debt", 0))
+        stayed = self.resampled_that_stayed(params, state, step)
+        state["charged"][stayed] = 1.0
+        n_stayed = int(stayed.sum())
+        extra = max(int(chosen_in.sum()) - n_rule_in, 0) + n_stayed + int(state.get("debt", 0))
         keep_out = max(n_out - extra, 0) if self.outside_offset else n_out
         state["debt"] = max(extra - n_out, 0) if self.outside_offset else 0
         kept = outside
@@ -289,7 +296,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             "step": int(step), "n": int(params["means"].shape[0]), "inside": int(inside.sum()),
             "rule_inside": n_rule_in, "grown_inside": int(chosen_in.sum()), "score_fence": fence,
             "rule_outside": n_out, "few_votes": int(few_votes.sum()), "grown_outside": int(kept.sum()),
-            "resampled": resampled, "debt": int(state["debt"]),
+            "resampled": resampled, "resampled_stayed": n_stayed, "debt": int(state["debt"]),
         })
         ledger["grown_inside"] += int(chosen_in.sum())
         ledger["grown_outside"] += int(kept.sum())
@@ -364,16 +371,26 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         is_prune = is_prune | idle
         n_prune = int(is_prune.sum())
         ledger = state.setdefault("ledger", new_ledger())
-        n_idle = int(idle.sum())
-        ledger["resampled_removed"] += n_idle
-        # Removing what resampling added pays back what it cost.
-        state["debt"] = max(int(state.get("debt", 0)) - n_idle, 0)
+        ledger["resampled_removed"] += int(idle.sum())
         n_in = int((is_prune & inside).sum())
         ledger["pruned_inside"] += n_in
         ledger["pruned_outside"] += n_prune - n_in
         if n_prune > 0:
             remove(params=params, optimizers=optimizers, state=state, mask=is_prune)
         return n_prune
+
+    def resampled_that_stayed(self, params, state, step: int) -> torch.Tensor:
+        """bool [N]: resampled Gaussians (and their grown copies) that have earned their
+        keep and are not yet offset against outside growth: judged as `idle_resampled`
+        judges, a refinement interval after they came and not right after an opacity
+        reset, and at or over ``carve_keep_opacity``. Only these cost outside growth: most
+        of what resampling adds fades and is removed, and charging it on arrival held back
+        3DGS's growth outside the prompts early in training, when it compounds."""
+        if step % self.reset_every < self.refine_every:
+            return torch.zeros(params["means"].shape[0], dtype=torch.bool, device=params["means"].device)
+        aged = (step - state["born"]) >= self.refine_every
+        kept = torch.sigmoid(params["opacities"].flatten()) >= self.carve_keep_opacity
+        return (state["carved"] > 0) & (state["charged"] == 0) & aged & kept
 
     def idle_resampled(self, params, state, step: int) -> torch.Tensor:
         """bool [N]: resampled Gaussians that have not earned their keep: a refinement
