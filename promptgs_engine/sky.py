@@ -36,26 +36,22 @@ def fibonacci_directions(n: int) -> torch.Tensor:
     return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1).float()
 
 
-def shell_radius(cameras: Sequence[Camera], scene_points: torch.Tensor) -> tuple[torch.Tensor, float]:
-    """The shell's centre (the cameras' mean centre) and radius: ``SKY_RADIUS_FACTOR``
-    times the farther of the scene points' reach (95th percentile) and the cameras'."""
-    centers = torch.stack([c.center.float() for c in cameras])
-    origin = centers.mean(dim=0)
-    reach = float(torch.quantile((scene_points.float() - origin).norm(dim=1), 0.95)) if scene_points.shape[0] else 0.0
-    return origin, SKY_RADIUS_FACTOR * max(reach, float((centers - origin).norm(dim=1).max()), 1e-3)
-
-
 def sky_points(
     cameras: Sequence[Camera], scene_points: torch.Tensor, n_directions: int = 20_000, max_image_side: int = 256
 ) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Points on a sphere around the cameras' centre that some training camera sees.
 
-    Returns ``(points [M, 3], colors [M, 3] in [0, 1], spacing)``: each point's colour is
+    Returns ``(points [M, 3], colors [M, 3] in [0, 1], radius)``: each point's colour is
     the median, over the cameras that see it, of the pixel it projects to (images read at
-    most ``max_image_side`` pixels wide); ``spacing`` is the distance between neighbouring
-    points (a size for their Gaussians).
+    most ``max_image_side`` pixels wide); ``radius`` is the shell's (the strategies' size
+    limit for its Gaussians, `strategies.default.too_big`). The radius is
+    ``SKY_RADIUS_FACTOR`` times the farther of the scene points' reach (95th percentile)
+    and the cameras' from their mean centre.
     """
-    origin, radius = shell_radius(cameras, scene_points)
+    centers = torch.stack([c.center.float() for c in cameras])
+    origin = centers.mean(dim=0)
+    reach = float(torch.quantile((scene_points.float() - origin).norm(dim=1), 0.95)) if scene_points.shape[0] else 0.0
+    radius = SKY_RADIUS_FACTOR * max(reach, float((centers - origin).norm(dim=1).max()), 1e-3)
     dirs = fibonacci_directions(n_directions)
     points = origin + radius * dirs
     seen = torch.zeros(n_directions, dtype=torch.long)
@@ -71,7 +67,7 @@ def sky_points(
         samples.append((idx, img[v[idx].long(), u[idx].long()]))
     keep = seen > 0
     if not bool(keep.any()):
-        return torch.zeros(0, 3), torch.zeros(0, 3), 0.0
+        return torch.zeros(0, 3), torch.zeros(0, 3), radius
     # Median colour per point over the cameras that see it.
     all_idx = torch.cat([i for i, _ in samples])
     all_col = torch.cat([c for _, c in samples])
@@ -95,5 +91,4 @@ def sky_points(
         near = best > limit
         colors[block[near]] = colors[seen_ids[nearest[near]]]
         keep[block[near]] = True
-    spacing = radius * math.sqrt(4.0 * math.pi / n_directions)
-    return points[keep], colors[keep].clamp(0, 1), spacing
+    return points[keep], colors[keep].clamp(0, 1), radius

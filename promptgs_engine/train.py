@@ -33,7 +33,7 @@ from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
 from .metrics import loss_and_mse, mse_to_psnr
 from .render import render
-from .sky import shell_radius, sky_points
+from .sky import sky_points
 from .strategies import DefaultSchedule, make_default_strategy
 from .strategies.default import BACKGROUND, BACKGROUND_RADIUS
 from .strategies.promptgs import PromptGSStrategy
@@ -151,8 +151,9 @@ class Trainer:
         self.screen_filter = cfg.effective_screen_filter
         points, colors = self.scene.points.float(), self.scene.point_colors.float()
         self.n_sky_points = 0
+        sky_radius = 0.0
         if cfg.sky and points.shape[0]:
-            sky, sky_colors, _ = sky_points(self.scene.train_cameras, points)
+            sky, sky_colors, sky_radius = sky_points(self.scene.train_cameras, points)
             points, colors = torch.cat([points, sky]), torch.cat([colors, sky_colors])
             self.n_sky_points = sky.shape[0]
             log.info("%d SfM points and %d far background (sky) points", self.scene.points.shape[0], self.n_sky_points)
@@ -172,7 +173,7 @@ class Trainer:
             background = torch.zeros(self.n_gaussians, device=self.device)
             background[-self.n_sky_points :] = 1.0
             self.strategy_state[BACKGROUND] = background
-            self.strategy_state[BACKGROUND_RADIUS] = shell_radius(self.scene.train_cameras, self.scene.points.float())[1]
+            self.strategy_state[BACKGROUND_RADIUS] = sky_radius
         self.step = 0
         self.train_seconds = 0.0
         self._order: list[int] = []

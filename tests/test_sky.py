@@ -1,8 +1,7 @@
 import math
 
-import pytest
-
 import numpy as np
+import pytest
 import torch
 from PIL import Image
 
@@ -44,14 +43,14 @@ def test_fibonacci_directions_are_unit_and_cover_the_sphere():
 def test_sky_points_lie_beyond_the_scene_where_cameras_look_with_the_colour_they_see(tmp_path):
     cams = _cameras(tmp_path)
     scene_points = (torch.rand(500, 3) - 0.5) * 20  # out to about 10 from the origin
-    points, colors, spacing = sky_points(cams, scene_points, n_directions=4000)
+    points, colors, shell_radius = sky_points(cams, scene_points, n_directions=4000)
     assert points.shape[0] > 0 and colors.shape == points.shape
     # On a sphere around the cameras' centre (the origin), beyond cameras and points.
     radius = points.norm(dim=1)
     assert torch.allclose(radius, radius[0].expand_as(radius), rtol=1e-4)
     reach = float(torch.quantile(scene_points.norm(dim=1), 0.95))
     assert float(radius[0]) >= SKY_RADIUS_FACTOR * reach - 1e-3
-    assert spacing > 0
+    assert shell_radius == pytest.approx(float(radius[0]), rel=1e-5)
     # Level cameras with a vertical half field of view of atan(24/40) = 31 degrees see
     # elevations up to 31 degrees (seen from the origin, up to about 7 degrees of
     # parallax more: the cameras stand 2 from it, the shell about 17); extrapolation adds

@@ -141,17 +141,21 @@ class ResettingDefaultStrategy(DefaultStrategy):
                 ab["frozen_at"] = n
         ab["last_reset"] = {"step": step, "loss": loss, "n": n}
 
-    @torch.no_grad()
-    def _prune_gs(self, params, optimizers, state, step) -> int:
-        """gsplat's pruning (faint Gaussians; after the first reset, those too big in the
-        world or, while ``refine_scale2d_stop_iter`` lasts, on screen), with the far
-        background measured by `too_big`."""
+    def prune_mask(self, params, state, step: int) -> torch.Tensor:
+        """bool [N]: gsplat's pruning rule (faint Gaussians; after the first reset, those
+        too big in the world or, while ``refine_scale2d_stop_iter`` lasts, on screen), with
+        the far background measured by `too_big`."""
         is_prune = torch.sigmoid(params["opacities"].flatten()) < self.prune_opa
         if step > self.reset_every:
             is_too_big = too_big(params, state, self.prune_scale3d)
             if step < self.refine_scale2d_stop_iter:
                 is_too_big |= state["radii"] > self.prune_scale2d
             is_prune = is_prune | is_too_big
+        return is_prune
+
+    @torch.no_grad()
+    def _prune_gs(self, params, optimizers, state, step) -> int:
+        is_prune = self.prune_mask(params, state, step)
         n_prune = int(is_prune.sum())
         if n_prune > 0:
             remove(params=params, optimizers=optimizers, state=state, mask=is_prune)

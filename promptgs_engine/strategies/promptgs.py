@@ -77,7 +77,7 @@ from gsplat.strategy.ops import _update_param_with_optimizer, remove
 
 from ..gaussians import rgb_to_sh
 from ..prompts import PromptBox, boxes_contain
-from .default import STATISTICS_MERGED, ResettingDefaultStrategy, too_big
+from .default import STATISTICS_MERGED, ResettingDefaultStrategy
 
 # Above this fraction of the Gaussians inside the prompts, growth there uses the normal
 # 3DGS threshold (see growth_candidates).
@@ -360,9 +360,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
     @torch.no_grad()
     def _prune_gs(self, params, optimizers, state, step) -> int:
         self._ensure_state(params, state)
-        is_prune = torch.sigmoid(params["opacities"].flatten()) < self.prune_opa
-        if step > self.reset_every:
-            is_prune = is_prune | too_big(params, state, self.prune_scale3d)
+        is_prune = self.prune_mask(params, state, step)
         young = (step - state["born"]) < self.protect_steps
         inside = self.inside_prompts(params["means"])
         protected = young & inside
@@ -381,16 +379,13 @@ class PromptGSStrategy(ResettingDefaultStrategy):
 
     def resampled_that_stayed(self, params, state, step: int) -> torch.Tensor:
         """bool [N]: resampled Gaussians (and their grown copies) that have earned their
-        keep and are not yet offset against outside growth: judged as `idle_resampled`
-        judges, a refinement interval after they came and not right after an opacity
-        reset, and at or over ``carve_keep_opacity``. Only these cost outside growth: most
-        of what resampling adds fades and is removed, and charging it on arrival held back
-        3DGS's growth outside the prompts early in training, when it compounds."""
-        if step % self.reset_every < self.refine_every:
-            return torch.zeros(params["means"].shape[0], dtype=torch.bool, device=params["means"].device)
-        aged = (step - state["born"]) >= self.refine_every
+        keep and are not yet offset against outside growth: judged when `idle_resampled`
+        judges (`_resampled_to_judge`), and at or over ``carve_keep_opacity``. Only these
+        cost outside growth: most of what resampling adds fades and is removed, and
+        charging it on arrival held back 3DGS's growth outside the prompts early in
+        training, when it compounds."""
         kept = torch.sigmoid(params["opacities"].flatten()) >= self.carve_keep_opacity
-        return (state["carved"] > 0) & (state["charged"] == 0) & aged & kept
+        return self._resampled_to_judge(params, state, step) & (state["charged"] == 0) & kept
 
     def idle_resampled(self, params, state, step: int) -> torch.Tensor:
         """bool [N]: resampled Gaussians that have not earned their keep: a refinement
@@ -398,11 +393,16 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         every opacity), still under ``carve_keep_opacity``. Carving adds up to a thousand
         points per round where the render is wrong, most of them on surfaces the rest of
         the model fits soon after; those fade, and would otherwise stay to the end."""
+        faint = torch.sigmoid(params["opacities"].flatten()) < self.carve_keep_opacity
+        return self._resampled_to_judge(params, state, step) & faint
+
+    def _resampled_to_judge(self, params, state, step: int) -> torch.Tensor:
+        """bool [N]: resampled Gaussians (and their grown copies) at least a refinement
+        interval old; none in the refinement interval after an opacity reset, whose
+        clamp says nothing of what they earned."""
         if step % self.reset_every < self.refine_every:
             return torch.zeros(params["means"].shape[0], dtype=torch.bool, device=params["means"].device)
-        aged = (step - state["born"]) >= self.refine_every
-        faint = torch.sigmoid(params["opacities"].flatten()) < self.carve_keep_opacity
-        return (state["carved"] > 0) & aged & faint
+        return (state["carved"] > 0) & ((step - state["born"]) >= self.refine_every)
 
 
 # -- resampling ---------------------------------------------------------------------------
