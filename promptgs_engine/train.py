@@ -29,6 +29,7 @@ from .data.images import preload_images
 from .distributed import RANK_PARAMS_ENV, Dist
 from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
+from .focus import PromptFocus, TrainView, load_prompt_setting, run_length
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
 from .metrics import loss_and_mse, mse_to_psnr
@@ -135,7 +136,8 @@ class Trainer:
         # Several ranks (distributed.py), or several views a step (batch.py).
         self.dist = dist or Dist()
         self.batch_size = int(cfg.batch_size or self.dist.world_size)
-        self.total_steps = steps_for(cfg.iterations, self.batch_size)
+        self.run_entries = run_length(cfg)  # cfg.iterations, plus PromptGS's related steps
+        self.total_steps = steps_for(self.run_entries, self.batch_size)
         self.out = Path(cfg.out)
         self.events = events or EventWriter()
         self.quiet = quiet or self.events.enabled
@@ -147,7 +149,10 @@ class Trainer:
         self.preload_images()
         torch.manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
-        self.schedule = scale_schedule(DefaultSchedule.for_iterations(cfg.iterations), self.batch_size)
+        # 3DGS's schedule for cfg.iterations, stretched over the related steps PromptGS adds:
+        # as many growth rounds and opacity resets as the 3DGS run of the same iterations.
+        schedule = DefaultSchedule.for_iterations(cfg.iterations).stretched(self.run_entries / cfg.iterations)
+        self.schedule = scale_schedule(schedule, self.batch_size)
         self.screen_filter = cfg.effective_screen_filter
         points, colors = self.scene.points.float(), self.scene.point_colors.float()
         self.n_sky_points = 0
@@ -179,8 +184,6 @@ class Trainer:
         self._order: list[int] = []
         self.focus = None
         if cfg.strategy == "promptgs":
-            from .focus import PromptFocus, load_prompt_setting
-
             self.focus = PromptFocus(self, load_prompt_setting(cfg, self.scene))
             self.strategy.attention_fn = lambda pts: self.focus.field.attention(pts.cpu(), self.focus.prompts)
         self.batched = BatchedSteps(self) if self.dist.distributed or self.batch_size > 1 else None
@@ -282,8 +285,6 @@ class Trainer:
         """The views this step trains on (one size): PromptGS's plan, or 3DGS's next view."""
         if self.focus is not None:
             return self.focus.plan(step)
-        from .focus import TrainView
-
         index = self.next_camera_index()
         camera = self.scene.train_cameras[index].downscaled(self.cfg.downscale)
         return [TrainView(camera, camera.load_image(), index)]
@@ -471,7 +472,8 @@ class Trainer:
 
     def run_summary(self) -> dict:
         return {
-            "iterations": self.step,
+            "iterations": self.cfg.iterations,
+            "steps": self.step,  # with PromptGS's related steps (focus.run_length)
             "train_seconds": self.train_seconds,
             "n_gaussians": self.n_gaussians,
             "backend": self.backend,

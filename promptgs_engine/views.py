@@ -48,11 +48,24 @@ __all__ = [
     "RANDOM_MULTIVIEW",
     "SINGLE",
     "RELATED_MULTIVIEW",
+    "DEFAULT_RATIO",
+    "entries_with_related_steps",
 ]
 
 RANDOM_MULTIVIEW = "random_multiview"
 SINGLE = "single"
 RELATED_MULTIVIEW = "related_multiview"
+DEFAULT_RATIO = (2, 3, 2, 3)  # random multiview, single, related multiview, single
+
+
+def entries_with_related_steps(whole_view_entries: int, ratio: tuple[int, int, int, int] = DEFAULT_RATIO) -> int:
+    """Schedule entries that hold ``whole_view_entries`` entries of whole views when the
+    related steps of ``ratio`` come on top of them: ``⌈n · cycle / (cycle − related)⌉``
+    (1500 → 1875 at 2:3:2:3)."""
+    cycle, related = sum(ratio), ratio[2]
+    if related >= cycle:
+        raise ValueError(f"ratio {ratio} has no whole-view steps")
+    return -(-int(whole_view_entries) * cycle // (cycle - related))
 
 
 @dataclass(frozen=True)
@@ -170,7 +183,7 @@ class ViewSchedule:
         max_views_per_step: int = 4,
         seed: int = 0,
         regions: Sequence[Sequence[int]] | None = None,
-        ratio: tuple[int, int, int, int] = (2, 3, 2, 3),
+        ratio: tuple[int, int, int, int] = DEFAULT_RATIO,
     ) -> None:
         if n_cameras < 1:
             raise ValueError("ViewSchedule needs at least one camera")

@@ -194,3 +194,18 @@ def test_screen_filter_settings(toy, tmp_path):
     for bad in (0.0, -1.0, float("nan"), "wide"):
         with pytest.raises(PromptGSError, match="--screen-filter"):
             TrainConfig(dataset="d", out="o", screen_filter=bad).validate()
+
+
+def test_related_steps_come_on_top_of_the_whole_view_steps(toy, tmp_path):
+    # --iterations counts whole-view steps; with prompts, the related steps (crops around
+    # a prompt) are added, so the rest of the scene gets as many steps as under 3DGS.
+    common = dict(dataset=str(toy), iterations=40, checkpoint_every=0)
+    focused = Trainer(TrainConfig(out=str(tmp_path / "p"), strategy="promptgs", prompts=str(toy / "prompts_1.json"), **common), quiet=True)
+    assert focused.total_steps == 50
+    crops = [any(v.crop for v in focused.plan_step(step)) for step in range(focused.total_steps)]
+    assert crops.count(False) == 40 and crops.count(True) == 10
+    three = Trainer(TrainConfig(out=str(tmp_path / "b"), strategy="3dgs", **common), quiet=True)
+    unprompted = Trainer(TrainConfig(out=str(tmp_path / "u"), strategy="promptgs", **common), quiet=True)
+    assert three.total_steps == unprompted.total_steps == 40
+    # 3DGS's schedule for the iterations, stretched over the whole run.
+    assert focused.schedule == three.schedule.stretched(50 / 40)

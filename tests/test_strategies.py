@@ -62,6 +62,22 @@ def test_schedule_scales_with_run_length():
     assert short.refine_start_iter < short.refine_stop_iter
 
 
+def test_a_stretched_schedule_keeps_its_growth_rounds_and_resets():
+    # PromptGS adds its related steps to a run (focus.run_length): the stretched schedule
+    # must not fit in an extra growth round (12k Gaussians late in a mountain run).
+    def rounds(s):  # gsplat's refinement condition
+        return sum(1 for t in range(s.refine_stop_iter) if t > s.refine_start_iter and t % s.refine_every == 0)
+
+    def resets(s):
+        return sum(1 for t in range(1, s.refine_stop_iter) if t % s.reset_every == 0)
+
+    for n in (100, 600, 1000, 1500, 3000, 7000, 30_000):
+        base = DefaultSchedule.for_iterations(n)
+        longer = base.stretched(1.25)
+        assert longer.refine_stop_iter > base.refine_stop_iter
+        assert (rounds(longer), resets(longer)) == (rounds(base), resets(base)), n
+
+
 def test_grad2d_statistics_equal_gsplats_bit_for_bit():
     """ResettingDefaultStrategy's masked accumulation against gsplat's gather/index_add_
     version, over two cameras with Gaussians seen by one, both or none."""

@@ -10,6 +10,7 @@ is harmless should a later gsplat fix the expression.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -55,6 +56,20 @@ class DefaultSchedule:
             refine_every=max(10, round(100 * s), min(100, iterations // 20)),
             reset_every=max(100, round(3000 * s)),
             sh_degree_interval=max(50, round(1000 * s)),
+        )
+
+    def stretched(self, factor: float) -> "DefaultSchedule":
+        """The schedule over a run ``factor`` (≥ 1) times as many steps long: start and
+        stop times ``factor`` (rounded), intervals times ``factor`` rounded up, so the run
+        has as many growth rounds, opacity resets and SH increases, and no more."""
+        if factor < 1:
+            raise ValueError(f"a schedule is stretched by a factor of at least 1, not {factor}")
+        return DefaultSchedule(
+            refine_start_iter=round(self.refine_start_iter * factor),
+            refine_stop_iter=round(self.refine_stop_iter * factor),
+            refine_every=math.ceil(self.refine_every * factor),
+            reset_every=math.ceil(self.reset_every * factor),
+            sh_degree_interval=math.ceil(self.sh_degree_interval * factor),
         )
 
 
