@@ -8,7 +8,8 @@ and the prompt-side bookkeeping around the PromptGS strategy.
   relevant views (`views.related_views`, ranked by the geometric terms only: the
   image-similarity term is left off), rendered as *crops* around the box's
   projection at full training resolution: a tiny object gets the whole step's loss,
-  at full detail, for the cost of a few thousand pixels.
+  at full detail, for the cost of a few thousand pixels. These steps come on top of
+  ``--iterations``, which counts whole-view steps (`run_length`).
 * **Progressive resolution.** Full-image steps run at 8×, 4×, 2× the training
   downscale before the full resolution (paper: 7k steps each at 30k; here the same
   fractions of the run; a level under 64 px across uses the coarsest that fits). While
