@@ -88,7 +88,9 @@ class PromptGSSettings(bpy.types.PropertyGroup):
     preset: EnumProperty(name="Preset", default="STANDARD", update=_apply_preset, items=[
         ("QUICK", "Quick", "2,000 steps"), ("STANDARD", "Standard", "7,000 steps"),
         ("FULL", "Full", "30,000 steps"), ("CUSTOM", "Custom", "Set the steps yourself")])
-    iterations: IntProperty(name="Steps", default=7000, min=1)
+    iterations: IntProperty(
+        name="Steps", default=7000, min=1,
+        description="Steps that train whole views; PromptGS with prompts adds its focused crop steps on top (a quarter more)")
     budget: IntProperty(name="Budget", default=0, min=0, description="Maximum number of Gaussians (0: no limit)")
     auto_prompts: IntProperty(name="Auto Prompts", default=0, min=0,
                               description="Also add the error field's top N proposals as prompts (0: off)")
