@@ -176,13 +176,25 @@ class ErrorField:
         new_keys, inv = torch.unique(_pack(coords), return_inverse=True)
         new_s = torch.zeros(new_keys.numel(), dtype=torch.float64).index_add_(0, inv, vals)
         new_h = torch.zeros(new_keys.numel(), dtype=torch.float64).index_add_(0, inv, torch.ones_like(vals))
-        all_keys = torch.cat([self.keys, new_keys])
-        merged, inv2 = torch.unique(all_keys, return_inverse=True)
-        self.loss_sum = torch.zeros(merged.numel(), dtype=torch.float64).index_add_(
-            0, inv2, torch.cat([self.loss_sum, new_s])
-        )
-        self.hits = torch.zeros(merged.numel(), dtype=torch.float64).index_add_(0, inv2, torch.cat([self.hits, new_h]))
-        self.keys = merged
+        # Voxels already stored add to their sums; the others are inserted in key order.
+        idx, found = self._lookup(new_keys)
+        self.loss_sum[idx[found]] += new_s[found]
+        self.hits[idx[found]] += new_h[found]
+        fresh = ~found
+        if bool(fresh.any()):
+            # Both key lists are sorted: each key's place in the merged list is its index
+            # plus the number of keys of the other list below it.
+            add_keys = new_keys[fresh]
+            m, a = len(self), add_keys.numel()
+            old_at = torch.arange(m) + torch.searchsorted(add_keys, self.keys)
+            add_at = torch.arange(a) + torch.searchsorted(self.keys, add_keys)
+            keys = torch.empty(m + a, dtype=torch.long)
+            loss_sum = torch.empty(m + a, dtype=torch.float64)
+            hits = torch.empty(m + a, dtype=torch.float64)
+            for out, old, add in ((keys, self.keys, add_keys), (loss_sum, self.loss_sum, new_s[fresh]), (hits, self.hits, new_h[fresh])):
+                out[old_at] = old
+                out[add_at] = add
+            self.keys, self.loss_sum, self.hits = keys, loss_sum, hits
         return int(vals.numel())
 
     def accumulate(

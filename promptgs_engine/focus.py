@@ -41,7 +41,7 @@ from .config import BASELINE_SCREEN_FILTER
 from .data import Camera
 from .errorfield import ErrorField
 from .errors import PromptError
-from .losses import edge_loss
+from .losses import edge_losses
 from .prompts import (
     PromptBox, check_visible, load_prompts, placement_warnings, project_box, prompts_from_json, scene_center_prompt,
 )
@@ -307,12 +307,9 @@ class PromptFocus:
         info["downscale"] = 1.0 if info["crop_step"] else self.full_cameras[views[0].source].width / views[0].camera.width
         if self.trainer.strategy.takes_statistics(step, info):  # the per-view losses weigh the scores
             gts = torch.stack([v.gt for v in views]).to(rendered.device)
-            info["view_loss"] = torch.stack(
-                [
-                    LAMBDA_L1 * l1_map[i].mean() + LAMBDA_DSSIM * dssim_map[i].mean()
-                    + LAMBDA_EDGE * edge_loss(rendered[i : i + 1], gts[i : i + 1])
-                    for i in range(len(views))
-                ]
+            info["view_loss"] = (
+                LAMBDA_L1 * l1_map.mean(dim=(1, 2)) + LAMBDA_DSSIM * dssim_map.mean(dim=(1, 2))
+                + LAMBDA_EDGE * edge_losses(rendered, gts)
             )
         if not self.feeds_field(step):
             return

@@ -196,6 +196,11 @@ def edge_loss(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     return (sobel_magnitude(img) - sobel_magnitude(ref)).abs().mean()
 
 
+def edge_losses(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """`edge_loss` of each image of a batch, [B], in one pass."""
+    return (sobel_magnitude(img) - sobel_magnitude(ref)).abs().mean(dim=(1, 2, 3))
+
+
 def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2) -> torch.Tensor:
     """The 3DGS training loss: (1 − λ)·L1 + λ·D-SSIM."""
     return (1.0 - ssim_lambda) * l1(img, ref) + ssim_lambda * d_ssim(img, ref)

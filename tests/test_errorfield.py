@@ -142,3 +142,23 @@ def test_state_dict_round_trip():
     assert other.step == field.step and other.voxel_size == 0.1
     assert ErrorField.from_extent(5.0, resolution=100).voxel_size == pytest.approx(0.1)
     assert ErrorField(0.1).peaks(3) == [] and ErrorField(0.1).loss_at(pts).sum() == 0
+
+
+def test_accumulated_sums_match_a_count_per_voxel():
+    """Points added over many steps, into voxels old and new: every stored voxel holds the
+    sum of the losses and the number of points that fell in it, keys sorted and unique."""
+    field = ErrorField(0.1, half_life=0.0)
+    g = torch.Generator().manual_seed(0)
+    expected: dict = {}
+    for step in range(12):
+        pts = torch.rand(300, 3, generator=g, dtype=torch.float64) * 2.0 - 1.0
+        vals = torch.rand(300, generator=g, dtype=torch.float64)
+        field.add_points(pts, vals, step=step)
+        for key, v in zip(map(tuple, torch.floor(pts / 0.1).long().tolist()), vals.tolist()):
+            total, hits = expected.get(key, (0.0, 0))
+            expected[key] = (total + v, hits + 1)
+    assert len(field) == len(expected)
+    assert bool((field.keys[1:] > field.keys[:-1]).all())
+    for centre, total, hits in zip(field.voxel_centers(), field.loss_sum.tolist(), field.hits.tolist()):
+        want_total, want_hits = expected[tuple(torch.floor(centre / 0.1).long().tolist())]
+        assert abs(total - want_total) < 1e-9 and hits == want_hits

@@ -31,6 +31,15 @@ def test_edge_loss_sees_a_missing_edge_but_not_a_flat_offset():
     assert float(losses.edge_loss(flat, ref)) > float(losses.edge_loss(shifted, ref)) > 0
 
 
+def test_edge_losses_are_each_images_edge_loss():
+    g = torch.Generator().manual_seed(0)
+    img, ref = torch.rand(3, 20, 17, 3, generator=g), torch.rand(3, 20, 17, 3, generator=g)
+    batch = losses.edge_losses(img, ref)
+    assert batch.shape == (3,)
+    for i in range(3):
+        assert torch.allclose(batch[i], losses.edge_loss(img[i : i + 1], ref[i : i + 1]), rtol=1e-6, atol=0)
+
+
 def test_psnr_and_masked_psnr_hand_computed():
     ref = torch.zeros(4, 4, 3)
     img = ref.clone()

@@ -275,6 +275,25 @@ def test_low_resolution_steps_add_nothing_to_the_growth_statistics():
     assert torch.equal(low["means2d"].grad, grads.reshape(1, 2, 2))
 
 
+def test_crop_steps_add_growth_statistics_inside_the_prompts_only():
+    """A crop step (``votes_outside`` False) adds its view-space gradients and counts to the
+    Gaussians it saw inside a prompt; those outside keep the statistics of the whole-view
+    steps, and one the crop did not see gets nothing."""
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.2, 0.1, 0.0], [3.0, 0.0, 0.0], [-0.3, 0.0, 0.0]])
+    params, _ = _params(pts)
+    grads = torch.tensor([[2e-6, 0.0], [0.0, 3e-6], [4e-6, 0.0], [1e-6, 1e-6]])
+    s, state = _strategy([UNIT_BOX])
+    s._update_state(params, state, _info(4, grads))  # a whole view: every Gaussian votes
+    whole_grad2d, whole_count = state["grad2d"].clone(), state["count"].clone()
+    crop = _info(4, grads * 2)
+    crop["votes_outside"] = False
+    crop["radii"][0, 1] = 0  # the crop does not see Gaussian 1
+    s._update_state(params, state, crop)
+    assert torch.equal(state["count"], whole_count + torch.tensor([1.0, 0.0, 0.0, 1.0]))
+    assert state["grad2d"][0] > whole_grad2d[0] and state["grad2d"][3] > whole_grad2d[3]
+    assert torch.equal(state["grad2d"][1:3], whole_grad2d[1:3])
+
+
 def test_spread_selection_gives_an_isolated_cluster_a_share_of_the_cap():
     # A sheet of 400 candidates scoring 1.0 and a 3-point cluster scoring 0.8 elsewhere:
     # the top 20 by score would all lie on the sheet.

@@ -215,18 +215,23 @@ def too_big(params, state: dict[str, Any], prune_scale3d: float) -> torch.Tensor
     return big
 
 
-def accumulate_grad2d(state: dict[str, Any], info: dict[str, Any], key: str, absgrad: bool, n: int) -> None:
+def accumulate_grad2d(
+    state: dict[str, Any], info: dict[str, Any], key: str, absgrad: bool, n: int, only: torch.Tensor | None = None
+) -> None:
     """Add a step's view-space gradient norms and visibility counts to ``state["grad2d"]``
     and ``state["count"]``, as gsplat's ``DefaultStrategy._update_state`` does for unpacked
     renders without the 2D-scale statistics, with the same sums in the same order (bitwise
     equal), but masked adds over all Gaussians in place of gathers, nonzero and index_add_:
-    half the torch calls, none of them sized by a count of visible Gaussians."""
+    half the torch calls, none of them sized by a count of visible Gaussians. ``only`` (bool
+    [N]): the Gaussians that take this step's statistics; the others keep theirs."""
     means2d = info[key]
     grads = means2d.absgrad if absgrad else means2d.grad  # [C, N, 2]
     c = info["n_cameras"]
     scale = torch.tensor([info["width"] / 2.0 * c, info["height"] / 2.0 * c], dtype=grads.dtype, device=grads.device)
     norms = (grads * scale).norm(dim=-1)  # [C, N]
     visible = (info["radii"] > 0).all(dim=-1)  # [C, N]
+    if only is not None:
+        visible = visible & only
     for key_ in ("grad2d", "count"):
         if state[key_] is None:
             state[key_] = torch.zeros(n, device=grads.device)

@@ -77,7 +77,7 @@ from gsplat.strategy.ops import _update_param_with_optimizer, remove
 
 from ..gaussians import rgb_to_sh
 from ..prompts import PromptBox, boxes_contain
-from .default import STATISTICS_MERGED, ResettingDefaultStrategy
+from .default import STATISTICS_MERGED, ResettingDefaultStrategy, accumulate_grad2d
 
 # Above this fraction of the Gaussians inside the prompts, growth there uses the normal
 # 3DGS threshold (see growth_candidates).
@@ -120,10 +120,9 @@ def score_terms(
         return cam_ids, gs_ids, torch.zeros(0, device=radii.device)
     w, h = info["width"], info["height"]
     grad = info["means2d"].absgrad if absgrad else info["means2d"].grad
-    grad = grad.clone()
-    grad[..., 0] *= w / 2.0 * info["n_cameras"]
-    grad[..., 1] *= h / 2.0 * info["n_cameras"]
-    g = (grad[cam_ids, gs_ids].norm(dim=-1) / grow_grad2d).clamp(0, 4)
+    c = info["n_cameras"]
+    to_pixels = torch.tensor([w / 2.0 * c, h / 2.0 * c], dtype=grad.dtype, device=grad.device)
+    g = ((grad[cam_ids, gs_ids] * to_pixels).norm(dim=-1) / grow_grad2d).clamp(0, 4)
     depth = info["depths"][cam_ids, gs_ids]
     d = 1.0 / (1.0 + depth.clamp_min(0) / scene_scale)
     o = torch.sigmoid(params["opacities"][gs_ids])
@@ -178,6 +177,15 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             return torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
         return boxes_contain(self.prompts, means.detach()).any(dim=0)
 
+    def inside_prompts_seen(self, means: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
+        """`inside_prompts` for the Gaussians a step rendered (``radii`` [C, N, 2] > 0 in
+        some view), False for the others: a crop sees about a quarter of them."""
+        inside = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+        if self.prompts:
+            ids = (radii > 0).all(dim=-1).any(dim=0).nonzero().squeeze(1)
+            inside[ids] = boxes_contain(self.prompts, means.detach()[ids]).any(dim=0)
+        return inside
+
     # -- statistics -------------------------------------------------------------------
 
     @staticmethod
@@ -217,14 +225,18 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         # step renders the region around a prompt at full resolution, over and over, and
         # would densify the terrain behind a drone group far beyond what 3DGS gives it;
         # under the narrow filter, flat surfaces show gaps whose gradients grow them.
-        outside = saved = None
         votes_outside = info.get("votes_outside", not info.get("crop_step", False))
-        if not votes_outside and state.get("grad2d") is not None:
+        if votes_outside or state.get("grad2d") is None:
+            super()._update_state(params, state, info, packed=packed)
+        elif not packed and self.refine_scale2d_stop_iter == 0:
+            n = params["means"].shape[0]
+            inside = self.inside_prompts_seen(params["means"], info["radii"])
+            accumulate_grad2d(state, info, self.key_for_gradient, self.absgrad, n, only=inside)
+        else:  # gsplat's statistics everywhere, then those outside the prompts as they were
             outside = ~self.inside_prompts(params["means"])
             saved = state["grad2d"].clone(), state["count"].clone()
-        super()._update_state(params, state, info, packed=packed)
-        if saved is not None:  # outside, the statistics as they were (no masked read: no wait on a GPU)
-            for key, before in zip(("grad2d", "count"), saved):
+            super()._update_state(params, state, info, packed=packed)
+            for key, before in zip(("grad2d", "count"), saved):  # no masked read: no wait on a GPU
                 state[key].copy_(torch.where(outside, before, state[key]))
         self._ensure_state(params, state)
         if "view_loss" not in info:
