@@ -179,7 +179,11 @@ class PromptGSStrategy(ResettingDefaultStrategy):
 
     def inside_prompts_seen(self, means: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
         """`inside_prompts` for the Gaussians a step rendered (``radii`` [C, N, 2] > 0 in
-        some view), False for the others: a crop sees about a quarter of them."""
+        some view); the others are False on the CPU, where only the rendered ones are
+        tested (a crop sees about a quarter of them). On a GPU every Gaussian is tested:
+        a gather by a count of visible ones would make the host wait."""
+        if means.device.type != "cpu":
+            return self.inside_prompts(means) & (radii > 0).all(dim=-1).any(dim=0)
         inside = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
         if self.prompts:
             ids = (radii > 0).all(dim=-1).any(dim=0).nonzero().squeeze(1)
