@@ -2,6 +2,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from promptgs_engine.bench.toy_scene import look_at
@@ -275,14 +276,15 @@ def test_low_resolution_steps_add_nothing_to_the_growth_statistics():
     assert torch.equal(low["means2d"].grad, grads.reshape(1, 2, 2))
 
 
-def test_crop_steps_add_growth_statistics_inside_the_prompts_only():
+@pytest.mark.parametrize("scale2d_steps", [0, 10_000])  # our accumulation, or gsplat's with 2D scales
+def test_crop_steps_add_growth_statistics_inside_the_prompts_only(scale2d_steps):
     """A crop step (``votes_outside`` False) adds its view-space gradients and counts to the
     Gaussians it saw inside a prompt; those outside keep the statistics of the whole-view
     steps, and one the crop did not see gets nothing."""
     pts = torch.tensor([[0.0, 0.0, 0.0], [0.2, 0.1, 0.0], [3.0, 0.0, 0.0], [-0.3, 0.0, 0.0]])
     params, _ = _params(pts)
     grads = torch.tensor([[2e-6, 0.0], [0.0, 3e-6], [4e-6, 0.0], [1e-6, 1e-6]])
-    s, state = _strategy([UNIT_BOX])
+    s, state = _strategy([UNIT_BOX], refine_scale2d_stop_iter=scale2d_steps)
     s._update_state(params, state, _info(4, grads))  # a whole view: every Gaussian votes
     whole_grad2d, whole_count = state["grad2d"].clone(), state["count"].clone()
     crop = _info(4, grads * 2)

@@ -116,10 +116,23 @@ class ResettingDefaultStrategy(DefaultStrategy):
     def _update_state(self, params, state, info, packed: bool = False) -> None:
         if info.get(STATISTICS_MERGED):  # a batched step added its views' statistics (batch.py)
             return
-        if packed or self.refine_scale2d_stop_iter > 0:
-            super()._update_state(params, state, info, packed=packed)
+        self.add_statistics(params, state, info, packed=packed)
+
+    def add_statistics(self, params, state, info, packed: bool = False, only: torch.Tensor | None = None) -> None:
+        """Add a step's growth statistics (``grad2d``, ``count``) to the Gaussians in
+        ``only`` (bool [N]; None: every one): `accumulate_grad2d` for unpacked renders
+        without the 2D-scale statistics, else gsplat's own, with the statistics of the
+        Gaussians outside ``only`` put back as they were."""
+        if not packed and self.refine_scale2d_stop_iter == 0:
+            accumulate_grad2d(state, info, self.key_for_gradient, self.absgrad, params["means"].shape[0], only=only)
             return
-        accumulate_grad2d(state, info, self.key_for_gradient, self.absgrad, params["means"].shape[0])
+        saved = None
+        if only is not None and state.get("grad2d") is not None:
+            saved = state["grad2d"].clone(), state["count"].clone()
+        super()._update_state(params, state, info, packed=packed)
+        if saved is not None:
+            for key, before in zip(("grad2d", "count"), saved):  # no masked read: no wait on a GPU
+                state[key].copy_(torch.where(only, state[key], before))
 
     # -- growth -----------------------------------------------------------------------
 
@@ -215,6 +228,13 @@ def too_big(params, state: dict[str, Any], prune_scale3d: float) -> torch.Tensor
     return big
 
 
+def pixel_gradient_scale(info: dict[str, Any], grads: torch.Tensor) -> torch.Tensor:
+    """[2]: what a ``means2d`` gradient is multiplied by before its norm is taken, as
+    gsplat's statistics do (half the image size, times the cameras of the step)."""
+    c = info["n_cameras"]
+    return torch.tensor([info["width"] / 2.0 * c, info["height"] / 2.0 * c], dtype=grads.dtype, device=grads.device)
+
+
 def accumulate_grad2d(
     state: dict[str, Any], info: dict[str, Any], key: str, absgrad: bool, n: int, only: torch.Tensor | None = None
 ) -> None:
@@ -226,9 +246,7 @@ def accumulate_grad2d(
     [N]): the Gaussians that take this step's statistics; the others keep theirs."""
     means2d = info[key]
     grads = means2d.absgrad if absgrad else means2d.grad  # [C, N, 2]
-    c = info["n_cameras"]
-    scale = torch.tensor([info["width"] / 2.0 * c, info["height"] / 2.0 * c], dtype=grads.dtype, device=grads.device)
-    norms = (grads * scale).norm(dim=-1)  # [C, N]
+    norms = (grads * pixel_gradient_scale(info, grads)).norm(dim=-1)  # [C, N]
     visible = (info["radii"] > 0).all(dim=-1)  # [C, N]
     if only is not None:
         visible = visible & only

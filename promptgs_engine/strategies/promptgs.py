@@ -77,7 +77,7 @@ from gsplat.strategy.ops import _update_param_with_optimizer, remove
 
 from ..gaussians import rgb_to_sh
 from ..prompts import PromptBox, boxes_contain
-from .default import STATISTICS_MERGED, ResettingDefaultStrategy, accumulate_grad2d
+from .default import STATISTICS_MERGED, ResettingDefaultStrategy, pixel_gradient_scale
 
 # Above this fraction of the Gaussians inside the prompts, growth there uses the normal
 # 3DGS threshold (see growth_candidates).
@@ -120,9 +120,7 @@ def score_terms(
         return cam_ids, gs_ids, torch.zeros(0, device=radii.device)
     w, h = info["width"], info["height"]
     grad = info["means2d"].absgrad if absgrad else info["means2d"].grad
-    c = info["n_cameras"]
-    to_pixels = torch.tensor([w / 2.0 * c, h / 2.0 * c], dtype=grad.dtype, device=grad.device)
-    g = ((grad[cam_ids, gs_ids] * to_pixels).norm(dim=-1) / grow_grad2d).clamp(0, 4)
+    g = ((grad[cam_ids, gs_ids] * pixel_gradient_scale(info, grad)).norm(dim=-1) / grow_grad2d).clamp(0, 4)
     depth = info["depths"][cam_ids, gs_ids]
     d = 1.0 / (1.0 + depth.clamp_min(0) / scene_scale)
     o = torch.sigmoid(params["opacities"][gs_ids])
@@ -232,16 +230,10 @@ class PromptGSStrategy(ResettingDefaultStrategy):
         votes_outside = info.get("votes_outside", not info.get("crop_step", False))
         if votes_outside or state.get("grad2d") is None:
             super()._update_state(params, state, info, packed=packed)
-        elif not packed and self.refine_scale2d_stop_iter == 0:
-            n = params["means"].shape[0]
-            inside = self.inside_prompts_seen(params["means"], info["radii"])
-            accumulate_grad2d(state, info, self.key_for_gradient, self.absgrad, n, only=inside)
-        else:  # gsplat's statistics everywhere, then those outside the prompts as they were
-            outside = ~self.inside_prompts(params["means"])
-            saved = state["grad2d"].clone(), state["count"].clone()
-            super()._update_state(params, state, info, packed=packed)
-            for key, before in zip(("grad2d", "count"), saved):  # no masked read: no wait on a GPU
-                state[key].copy_(torch.where(outside, before, state[key]))
+        else:  # packed radii are per visible pair, not [C, N, 2]: test every Gaussian then
+            means = params["means"]
+            inside = self.inside_prompts(means) if packed else self.inside_prompts_seen(means, info["radii"])
+            self.add_statistics(params, state, info, packed=packed, only=inside)
         self._ensure_state(params, state)
         if "view_loss" not in info:
             return
