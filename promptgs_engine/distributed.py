@@ -315,24 +315,43 @@ _ROOT_CAUSE_RANK = re.compile(r"^\s*rank\s*:\s*(\d+)")
 _ROOT_CAUSE_EXIT = re.compile(r"^\s*exitcode\s*:\s*(-?\d+)(?:.*\((SIG\w+)\))?")
 
 
+def _signal_name(exit_code: int) -> str | None:
+    """'SIGKILL' for a process's exit code -9; None for a normal exit code."""
+    if exit_code >= 0:
+        return None
+    try:
+        return signal.Signals(-exit_code).name
+    except ValueError:
+        return f"signal {-exit_code}"
+
+
 def describe_failure(torchrun_output: Sequence[str]) -> str | None:
-    """'rank R exited with …' from the root-cause block torchrun prints when a rank fails."""
-    rank = code = sig = None
-    seen_root = False
+    """'rank R was killed by SIG…' for a rank killed by a signal, else 'rank R exited with
+    code C' for the root cause, from the failure report torchrun prints when a rank fails.
+    A killed rank comes first even when listed among the other failures: on a loaded
+    machine torchrun may see the survivor's error (a lost peer) before the kill."""
+    failures: list[tuple[int, int, str | None, bool]] = []  # rank, exit code, signal, root cause
+    rank: int | None = None
+    in_root = False
     for line in torchrun_output:
         if "Root Cause" in line:
-            seen_root = True
-            continue
-        if not seen_root:
+            in_root = True
             continue
         m = _ROOT_CAUSE_RANK.match(line)
-        if m and rank is None:
+        if m:
             rank = int(m.group(1))
+            continue
         m = _ROOT_CAUSE_EXIT.match(line)
-        if m and code is None:
-            code, sig = int(m.group(1)), m.group(2)
-    if rank is None or code is None:
+        if m and rank is not None:
+            code = int(m.group(1))
+            # Older torchruns print no signal name beside the code: -N is signal N.
+            failures.append((rank, code, m.group(2) or _signal_name(code), in_root))
+            rank = None
+    killed = sorted((f for f in failures if f[2]), key=lambda f: not f[3])  # the root cause first
+    chosen = (killed or [f for f in failures if f[3]] or [None])[0]
+    if chosen is None:
         return None
+    rank, code, sig, _ = chosen
     how = f"was killed by {sig}" if sig else f"exited with code {code}"
     return f"rank {rank} {how}"
 

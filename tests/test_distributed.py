@@ -341,12 +341,41 @@ def test_failure_line_names_the_killed_rank():
         "Root Cause (first observed failure):\n", "[0]:\n", "  rank      : 1 (local_rank: 1)\n",
         "  exitcode  : -9 (pid: 123)  (SIGKILL)\n",
     ]
-    assert distributed.failure_line(output, 1, "runs/x") == (
+    expected = (
         "distributed training failed: rank 1 was killed by SIGKILL, and the other ranks were stopped; "
         "the last checkpoint is kept in runs/x"
     )
+    assert distributed.failure_line(output, 1, "runs/x") == expected
+    # On a loaded machine torchrun can see the survivor's error first (rank 0 lost its peer
+    # in an all-reduce) and name it the root cause; the killed rank, listed among the other
+    # failures, is still the cause.
+    output = [
+        "Failures:\n", "[1]:\n", "  rank      : 1 (local_rank: 1)\n", "  exitcode  : -9 (pid: 124)  (SIGKILL)\n",
+        "  traceback : Signal 9 (SIGKILL) received by PID 124\n", "-----\n",
+        "Root Cause (first observed failure):\n", "[0]:\n", "  rank      : 0 (local_rank: 0)\n",
+        "  exitcode  : 2 (pid: 123) \n", "  traceback : <N/A>\n",
+        "promptgs: error: rank 0: lost the other ranks during the gradient all-reduce\n",
+    ]
+    assert distributed.failure_line(output, 2, "runs/x") == expected
+    # Older torchruns (2.11 on an H100 machine) print the code without the signal's name.
+    output[3] = "  exitcode  : -9 (pid: 124)\n"
+    assert distributed.failure_line(output, 2, "runs/x") == expected
+    # With no rank killed, the root cause's own report ends the run.
+    assert distributed.describe_failure(output[:2] + output[6:]) == "rank 0 exited with code 2"
     # A rank that stops on bad input reports it; that line ends the run.
     assert distributed.failure_line(["promptgs: error: data: no images\n"], 1, None) == "data: no images"
+
+
+def _assert_equal_up_to_atomics(a: torch.Tensor, b: torch.Tensor, name: str) -> None:
+    """Two CUDA runs of the same steps: gsplat's backward adds with atomics, and Adam divides
+    by the gradient's own running size, so an element whose gradient is near zero can move
+    by a few learning-rate steps on rounding alone (seen on an H100: one of 6,000 quaternion
+    entries 1.6e-4 apart after 8 steps). A wiring error (a gradient not reduced, a batch
+    weighted twice, another view order) moves most elements instead."""
+    diff = (a - b).abs()
+    off = float((diff > 1e-4).float().mean())
+    assert off <= 1e-3, f"{name}: {off:.2%} of the elements differ by more than 1e-4"
+    assert float(diff.max()) <= 1e-2, f"{name}: largest difference {float(diff.max()):.3g}"
 
 
 @pytest.mark.gpu
@@ -368,4 +397,4 @@ def test_world_size_one_with_nccl_is_the_single_process_trainer(toy, tmp_path, m
     plain = _train_in_process(_config(toy, tmp_path / "plain", iterations=8, backend="cuda"))
     assert ranked.batched is None and batched.total_steps == 4
     for key, value in plain.params.items():
-        torch.testing.assert_close(ranked.params[key], value, atol=1e-4, rtol=1e-4)
+        _assert_equal_up_to_atomics(ranked.params[key], value, key)

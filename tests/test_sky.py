@@ -117,5 +117,5 @@ def test_the_trainer_marks_the_background_shell_for_the_strategy(toy, tmp_path):
     assert trainer.n_sky_points > 0 and int(marks.sum()) == trainer.n_sky_points
     assert bool((marks[-trainer.n_sky_points :] == 1).all())
     centre = torch.stack([c.center.float() for c in trainer.scene.train_cameras]).mean(dim=0)
-    shell = trainer.params["means"][-trainer.n_sky_points :].detach()
+    shell = trainer.params["means"][-trainer.n_sky_points :].detach().cpu()  # "auto" may have picked a GPU
     assert float((shell - centre).norm(dim=1).mean()) == pytest.approx(trainer.strategy_state[BACKGROUND_RADIUS], rel=1e-4)
