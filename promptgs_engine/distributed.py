@@ -332,10 +332,15 @@ def describe_failure(torchrun_output: Sequence[str]) -> str | None:
     machine torchrun may see the survivor's error (a lost peer) before the kill."""
     failures: list[tuple[int, int, str | None, bool]] = []  # rank, exit code, signal, root cause
     rank: int | None = None
-    in_root = False
+    in_report = in_root = False  # past the report's "Failures:" / "Root Cause" headers
     for line in torchrun_output:
+        if line.strip() == "Failures:":
+            in_report = True
+            continue
         if "Root Cause" in line:
-            in_root = True
+            in_report = in_root = True
+            continue
+        if not in_report:
             continue
         m = _ROOT_CAUSE_RANK.match(line)
         if m:
