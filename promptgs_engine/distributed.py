@@ -33,7 +33,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import torch
 
@@ -311,8 +311,17 @@ def strip_option(argv: Sequence[str], name: str) -> list[str]:
     return out
 
 
-_ROOT_CAUSE_RANK = re.compile(r"^\s*rank\s*:\s*(\d+)")
-_ROOT_CAUSE_EXIT = re.compile(r"^\s*exitcode\s*:\s*(-?\d+)(?:.*\((SIG\w+)\))?")
+_FAILURE_RANK = re.compile(r"^\s*rank\s*:\s*(\d+)")
+_FAILURE_EXIT = re.compile(r"^\s*exitcode\s*:\s*(-?\d+)(?:.*\((SIG\w+)\))?")
+
+
+class _RankFailure(NamedTuple):
+    """One block of torchrun's failure report."""
+
+    rank: int
+    exit_code: int
+    signal: str | None  # 'SIGKILL', or None for a normal exit code
+    root_cause: bool
 
 
 def _signal_name(exit_code: int) -> str | None:
@@ -330,7 +339,7 @@ def describe_failure(torchrun_output: Sequence[str]) -> str | None:
     code C' for the root cause, from the failure report torchrun prints when a rank fails.
     A killed rank comes first even when listed among the other failures: on a loaded
     machine torchrun may see the survivor's error (a lost peer) before the kill."""
-    failures: list[tuple[int, int, str | None, bool]] = []  # rank, exit code, signal, root cause
+    failures: list[_RankFailure] = []
     rank: int | None = None
     in_report = in_root = False  # past the report's "Failures:" / "Root Cause" headers
     for line in torchrun_output:
@@ -342,21 +351,21 @@ def describe_failure(torchrun_output: Sequence[str]) -> str | None:
             continue
         if not in_report:
             continue
-        m = _ROOT_CAUSE_RANK.match(line)
+        m = _FAILURE_RANK.match(line)
         if m:
             rank = int(m.group(1))
             continue
-        m = _ROOT_CAUSE_EXIT.match(line)
+        m = _FAILURE_EXIT.match(line)
         if m and rank is not None:
             code = int(m.group(1))
             # Older torchruns print no signal name beside the code: -N is signal N.
-            failures.append((rank, code, m.group(2) or _signal_name(code), in_root))
+            failures.append(_RankFailure(rank, code, m.group(2) or _signal_name(code), in_root))
             rank = None
-    killed = sorted((f for f in failures if f[2]), key=lambda f: not f[3])  # the root cause first
-    chosen = (killed or [f for f in failures if f[3]] or [None])[0]
+    killed = sorted((f for f in failures if f.signal), key=lambda f: not f.root_cause)  # the root cause first
+    chosen = (killed or [f for f in failures if f.root_cause] or [None])[0]
     if chosen is None:
         return None
-    rank, code, sig, _ = chosen
+    rank, code, sig = chosen.rank, chosen.exit_code, chosen.signal
     how = f"was killed by {sig}" if sig else f"exited with code {code}"
     return f"rank {rank} {how}"
 
