@@ -8,8 +8,9 @@ and the prompt-side bookkeeping around the PromptGS strategy.
   relevant views (`views.related_views`, ranked by the geometric terms only: the
   image-similarity term is left off), rendered as *crops* around the box's
   projection at full training resolution: a tiny object gets the whole step's loss,
-  at full detail, for the cost of a few thousand pixels. These steps come on top of
-  ``--iterations``, which counts whole-view steps (`run_length`).
+  at full detail, for the cost of a few thousand pixels. A related step holds two
+  views, and one for the centre prompt (`CENTRE_PROMPT_VIEWS_PER_STEP`). These steps
+  come on top of ``--iterations``, which counts whole-view steps (`run_length`).
 * **Progressive resolution.** Full-image steps run at 8×, 4×, 2× the training
   downscale before the full resolution (paper: 7k steps each at 30k; here the same
   fractions of the run; a level under 64 px across uses the coarsest that fits). While
@@ -62,6 +63,15 @@ MIN_PROGRESSIVE_WIDTH = 100
 RESAMPLED_OPACITY = 0.5  # of the Gaussians resampling adds
 SEED_SCALE_PX = 0.7  # width of the Gaussian seeded at a proposed point, in pixels at its depth (as resampling's)
 MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
+# Views in a related step of the centre prompt (`--center-prompt`); other prompts take the
+# schedule's cap (2). The centre box marks no object, only where the cameras look, and its
+# crops hold the densest part of a real capture (37% of tumbler's frame at 1/4 size), so two
+# of them cost more than a whole view (a view's cost there is mostly per Gaussian). With
+# one, tumbler (1500 steps, seeds 0-5) trains in 1.26x 3DGS's time, not 1.42x, at +0.11 dB
+# (+0.09 with two); fern is unchanged within its spread over seeds. A box around tiny
+# objects keeps two: on the 64-sample mountain (one box, seed 0) one crop a step took
+# recall from 0.78 to 0.68 (docs/promptgs.md, "Views in a related step").
+CENTRE_PROMPT_VIEWS_PER_STEP = 1
 # While densification runs, every FULL_SIZE_EVERY-th single-view step renders the whole
 # view at full size with 3DGS's screen filter: the growth statistics outside the prompts
 # come from those alone, so that PromptGS grows there as 3DGS would.
@@ -99,7 +109,7 @@ def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Ca
 
 def load_prompt_setting(cfg, scene=None) -> list[PromptBox]:
     """The prompt boxes a config asks for: a file or inline object, and/or the centre box
-    (defined in ``scene``'s own frame: `prompts.scene_center_prompt`)."""
+    (defined in ``scene``'s own frame: `prompts.scene_center_prompt`), which comes last."""
     boxes: list[PromptBox] = []
     if cfg.prompts is not None:
         if isinstance(cfg.prompts, (dict, list)):
@@ -178,6 +188,9 @@ class PromptFocus:
         cap = views_cap_from_memory(bytes_per_view, available_memory_bytes(), max_views=max_views)
         self.schedule = ViewSchedule(len(self.cameras), max_views_per_step=max(cap, 1), seed=cfg.seed)
         self.generator = torch.Generator().manual_seed(cfg.seed)
+        # The centre box (`load_prompt_setting` puts it last): its related steps take
+        # CENTRE_PROMPT_VIEWS_PER_STEP views.
+        self.centre_prompt = prompts[-1] if cfg.center_prompt and prompts else None
         # When a list, observe() leaves error-field points here instead of adding them (batch.py).
         self.field_sink: list | None = None
         self.set_prompts(prompts)
@@ -198,7 +211,10 @@ class PromptFocus:
         for i, views in enumerate(self.related):
             if len(views) < MIN_RELATED_VIEWS:
                 warn(f"prompt {i} is seen by {len(views)} training cameras (fewer than {MIN_RELATED_VIEWS}): no focused views for it")
-        self.schedule.set_regions([v if len(v) >= MIN_RELATED_VIEWS else [] for v in self.related])
+        self.schedule.set_regions(
+            [v if len(v) >= MIN_RELATED_VIEWS else [] for v in self.related],
+            views_per_step=[CENTRE_PROMPT_VIEWS_PER_STEP if p == self.centre_prompt else None for p in self.prompts],
+        )
         self.trainer.strategy.set_prompts(self.prompts)
         log.info("%d prompts; related views %s", len(self.prompts), self.related)
 

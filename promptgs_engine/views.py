@@ -19,8 +19,9 @@ the ratio 2:3:2:3 (configurable). Single-view steps walk a fresh seeded permutat
 all training cameras per epoch (as 3DGS does); random multiview steps walk their own
 seeded permutations in chunks of ``max_views_per_step``, so both cover every camera over
 time; related multiview steps take the top-K views of one region, rotating over regions
-and, when a region has more than ``max_views_per_step`` views, rotating a window over its
-views. Without regions, related steps fall back to random multiview batches. The batch of
+and, when a region has more than ``max_views_per_step`` views (or its own, smaller cap:
+`ViewSchedule.set_regions`), rotating a window over its views. Without regions, related
+steps fall back to random multiview batches. The batch of
 a step is a pure function of (seed, step, regions, cap), so resuming is exact.
 """
 
@@ -212,16 +213,25 @@ class ViewSchedule:
             raise ValueError(f"max_views_per_step must be >= 1, got {cap}")
         self.cap = int(cap)
 
-    def set_regions(self, regions: Sequence[Sequence[int]]) -> None:
+    def set_regions(self, regions: Sequence[Sequence[int]], views_per_step: Sequence[int | None] | None = None) -> None:
         """Replace the related-view lists (one per prompt; a batch's ``region`` is the
-        index in this list). Empty lists get no related steps; duplicates are dropped."""
+        index in this list). Empty lists get no related steps; duplicates are dropped.
+        ``views_per_step`` (one per region, None for the schedule's cap) caps the views of
+        that region's related steps below ``max_views_per_step``; its window then moves
+        by that many views a visit."""
         out = []
         for r in regions:
             lst = list(dict.fromkeys(int(i) for i in r))
             if any(i < 0 or i >= self.n for i in lst):
                 raise ValueError(f"region view index out of range 0..{self.n - 1}: {lst}")
             out.append(lst)
+        caps = list(views_per_step) if views_per_step is not None else [None] * len(out)
+        if len(caps) != len(out):
+            raise ValueError(f"views_per_step has {len(caps)} entries for {len(out)} regions")
+        if any(c is not None and c < 1 for c in caps):
+            raise ValueError(f"views_per_step must be >= 1 or None: {caps}")
         self.regions = out
+        self.region_caps = [None if c is None else int(c) for c in caps]
         self._usable = [i for i, lst in enumerate(out) if lst]
 
     @property
@@ -262,7 +272,7 @@ class ViewSchedule:
         visit, k = divmod(o, len(self._usable))
         region = self._usable[k]
         views = self.regions[region]
-        m = min(self.cap, len(views))
+        m = min(self.cap, self.region_caps[region] or self.cap, len(views))
         start = (visit * m) % len(views)
         return ViewBatch(step, RELATED_MULTIVIEW, [views[(start + i) % len(views)] for i in range(m)], region)
 

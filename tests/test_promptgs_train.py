@@ -209,3 +209,26 @@ def test_related_steps_come_on_top_of_the_whole_view_steps(toy, tmp_path):
     assert three.total_steps == unprompted.total_steps == 40
     # 3DGS's schedule for the iterations, stretched over the whole run.
     assert focused.schedule == three.schedule.stretched(50 / 40)
+
+
+def test_the_centre_prompt_takes_one_view_a_related_step_and_a_drawn_box_two(toy, tmp_path):
+    # The centre box marks no object: one crop per related step (focus.CENTRE_PROMPT_VIEWS_PER_STEP).
+    # A box drawn around objects keeps the multiview pair its tiny objects need.
+    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=80, strategy="promptgs",
+                      prompts=str(toy / "prompts_1.json"), center_prompt=True, checkpoint_every=0)
+    focus = Trainer(cfg, quiet=True).focus
+    assert len(focus.prompts) == 2 and focus.prompts[1] == focus.centre_prompt
+
+    def crops_per_region() -> dict[int, set[int]]:
+        out: dict[int, set[int]] = {}
+        for entry in range(focus.trainer.total_steps):
+            batch = focus.schedule.batch(entry)
+            if batch.kind == "related_multiview":
+                views = focus.plan(entry)
+                assert all(v.crop for v in views)
+                out.setdefault(batch.region, set()).add(len(views))
+        return out
+
+    assert crops_per_region() == {0: {2}, 1: {1}}
+    focus.load_state_dict(focus.state_dict())  # a resumed run still knows which box is the centre
+    assert crops_per_region() == {0: {2}, 1: {1}}

@@ -124,6 +124,17 @@ def test_schedule_fallback_determinism_and_cap_changes():
     a.set_regions([[], [3, 4]])
     # The region index is the prompt's, even when an earlier prompt has no views.
     assert a.batch(5).kind == RELATED_MULTIVIEW and a.batch(5).region == 1 and a.batch(5).views == [3]
+    # A region's own cap: its related steps hold that many views, and its window moves by
+    # that many a visit; the other regions keep the schedule's cap.
+    b = ViewSchedule(10, max_views_per_step=2, seed=1)
+    b.set_regions([[0, 1, 2, 3], [4, 5, 6]], views_per_step=[None, 1])
+    related = [b.batch(t) for t in range(200) if b.batch(t).kind == RELATED_MULTIVIEW]
+    assert [r.views for r in related if r.region == 0][:2] == [[0, 1], [2, 3]]
+    assert [r.views for r in related if r.region == 1][:4] == [[4], [5], [6], [4]]
+    with pytest.raises(ValueError):
+        b.set_regions([[0, 1]], views_per_step=[0])
+    with pytest.raises(ValueError):
+        b.set_regions([[0, 1]], views_per_step=[1, 1])
     single = ViewSchedule(5, ratio=(0, 1, 0, 0))
     assert all(single.batch(t).kind == SINGLE for t in range(20))
     with pytest.raises(ValueError):
