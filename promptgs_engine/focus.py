@@ -236,6 +236,11 @@ class PromptFocus:
         stage = int(step / (PROGRESSIVE_FRACTION * self.trainer.total_steps))
         return levels[stage] if stage < len(levels) else 1
 
+    def full_size_step(self) -> int:
+        """The first step whose whole-view renders are at full size (`downscale_at` is 1
+        from there on; 0 without the progressive schedule)."""
+        return next((s for s in range(self.trainer.total_steps) if self.downscale_at(s) == 1), self.trainer.total_steps)
+
     def is_statistics_step(self, step: int, kind: str, entry: int | None = None) -> bool:
         """Whether a single-view step is a statistics step: every FULL_SIZE_EVERY-th one
         (schedule ``entry``, the step itself at one entry a step) while densification runs.
