@@ -62,7 +62,7 @@ def _add_train(sub) -> None:
     )
     p.add_argument(
         "--compact", action=argparse.BooleanOptionalAction, default=None,
-        help="at 60%% of the run (after growth ends), remove the 40%% of the Gaussians that carry the least "
+        help="at 60%% of the run (after growth ends; PromptGS: not before its views reach full size), remove the 40%% of the Gaussians that carry the least "
         "blending weight in the training views (at most 5%% of it), and fine-tune the rest; prompted objects are kept",
     )
     p.add_argument("--snapshot-every", type=int, help="write a snapshot for the Blender add-on every N steps")
