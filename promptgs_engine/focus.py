@@ -29,6 +29,7 @@ and the prompt-side bookkeeping around the PromptGS strategy.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import logging
 import os
@@ -238,8 +239,9 @@ class PromptFocus:
 
     def full_size_step(self) -> int:
         """The first step whose whole-view renders are at full size (`downscale_at` is 1
-        from there on; 0 without the progressive schedule)."""
-        return next((s for s in range(self.trainer.total_steps) if self.downscale_at(s) == 1), self.trainer.total_steps)
+        from there on; 0 without the progressive schedule). `downscale_at` never rises with
+        the step, so a binary search finds it (`compaction_step` asks after every step)."""
+        return bisect.bisect_left(range(self.trainer.total_steps), True, key=lambda s: self.downscale_at(s) == 1)
 
     def is_statistics_step(self, step: int, kind: str, entry: int | None = None) -> bool:
         """Whether a single-view step is a statistics step: every FULL_SIZE_EVERY-th one
