@@ -232,3 +232,24 @@ def test_the_centre_prompt_takes_one_view_a_related_step_and_a_drawn_box_two(toy
     assert crops_per_region() == {0: {2}, 1: {1}}
     focus.load_state_dict(focus.state_dict())  # a resumed run still knows which box is the centre
     assert crops_per_region() == {0: {2}, 1: {1}}
+
+
+def test_resampling_holds_the_centre_prompt_to_a_higher_error_bar_than_a_drawn_box(toy, tmp_path, monkeypatch):
+    # A box around objects carves where the render misses by 0.03 (faint drones); the centre
+    # box holds a whole capture and keeps 0.08 (focus.CENTRE_PROMPT_CARVE_ERROR_THRESHOLD).
+    from promptgs_engine import focus as focus_module
+    from promptgs_engine.strategies.promptgs import CARVE_ERROR_THRESHOLD, CarvedPoints
+
+    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=80, strategy="promptgs",
+                      prompts=str(toy / "prompts_1.json"), center_prompt=True, checkpoint_every=0)
+    focus = Trainer(cfg, quiet=True).focus
+    asked = {}
+
+    def carve(box, views, **kw):
+        asked[focus.prompts.index(box)] = kw["error_threshold"]
+        return CarvedPoints(torch.zeros(0, 3), torch.zeros(0, 3), 0.1)
+
+    monkeypatch.setattr(focus_module, "carve_prompt", carve)
+    focus.resample(step=30)
+    assert asked == {0: CARVE_ERROR_THRESHOLD, 1: focus_module.CENTRE_PROMPT_CARVE_ERROR_THRESHOLD}
+    assert CARVE_ERROR_THRESHOLD < focus_module.CENTRE_PROMPT_CARVE_ERROR_THRESHOLD
