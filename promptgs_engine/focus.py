@@ -73,12 +73,6 @@ MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
 # objects keeps two: on the 64-sample mountain (one box, seed 0) one crop a step took
 # recall from 0.78 to 0.68 (docs/promptgs.md, "Views in a related step").
 CENTRE_PROMPT_VIEWS_PER_STEP = 1
-# Least per-pixel error that votes for resampling in the centre prompt. Boxes drawn around
-# objects take the strategy's `carve_error_threshold` (0.03), low enough for a faint drone;
-# the centre box holds a whole real capture, whose texture and edges a model at 1500 steps
-# misses by a few hundredths everywhere, and at 0.03 its carving fed them: tumbler -0.21
-# and -0.11 dB (seeds 0, 1), fern -0.10 dB (seed 0), against this, the earlier bar.
-CENTRE_PROMPT_CARVE_ERROR_THRESHOLD = 0.08
 # While densification runs, every FULL_SIZE_EVERY-th single-view step renders the whole
 # view at full size with 3DGS's screen filter: the growth statistics outside the prompts
 # come from those alone, so that PromptGS grows there as 3DGS would.
@@ -198,6 +192,9 @@ class PromptFocus:
         # The centre box (`load_prompt_setting` puts it last): its related steps take
         # CENTRE_PROMPT_VIEWS_PER_STEP views.
         self.centre_prompt = prompts[-1] if cfg.center_prompt and prompts else None
+        # The boxes the user drew (not the centre box; proposals come later): resampling
+        # votes for fainter errors in them (`carve_error_threshold`).
+        self.drawn_prompts = [p for p in prompts if p != self.centre_prompt]
         # When a list, observe() leaves error-field points here instead of adding them (batch.py).
         self.field_sink: list | None = None
         self.set_prompts(prompts)
@@ -380,11 +377,13 @@ class PromptFocus:
         return since_reset >= sched.refine_every and (since_reset - sched.refine_every) % self.resample_every == 0
 
     def carve_error_threshold(self, box: PromptBox) -> float:
-        """The least per-pixel error that votes for resampling in ``box``: the strategy's
-        for a box around objects, `CENTRE_PROMPT_CARVE_ERROR_THRESHOLD` for the centre box."""
-        if self.centre_prompt is not None and box == self.centre_prompt:
-            return CENTRE_PROMPT_CARVE_ERROR_THRESHOLD
-        return self.trainer.strategy.carve_error_threshold
+        """The least per-pixel error that votes for resampling in ``box``: lower in a box
+        the user drew around objects than in one the run made (a proposal, the centre box);
+        `strategies.promptgs.CARVE_ERROR_THRESHOLD` says why."""
+        strategy = self.trainer.strategy
+        if box in self.drawn_prompts:
+            return strategy.carve_drawn_error_threshold
+        return strategy.carve_error_threshold
 
     @torch.no_grad()
     def resample(self, step: int) -> int:

@@ -234,15 +234,20 @@ def test_the_centre_prompt_takes_one_view_a_related_step_and_a_drawn_box_two(toy
     assert crops_per_region() == {0: {2}, 1: {1}}
 
 
-def test_resampling_holds_the_centre_prompt_to_a_higher_error_bar_than_a_drawn_box(toy, tmp_path, monkeypatch):
-    # A box around objects carves where the render misses by 0.03 (faint drones); the centre
-    # box holds a whole capture and keeps 0.08 (focus.CENTRE_PROMPT_CARVE_ERROR_THRESHOLD).
+def test_resampling_votes_for_fainter_errors_in_a_drawn_box_than_in_boxes_the_run_made(toy, tmp_path, monkeypatch):
+    # A box the user drew around objects carves where the render misses by 0.03 (faint
+    # drones); the centre box and a box the run adds later (a proposal) keep 0.08
+    # (strategies.promptgs.CARVE_ERROR_THRESHOLD says why).
     from promptgs_engine import focus as focus_module
-    from promptgs_engine.strategies.promptgs import CARVE_ERROR_THRESHOLD, CarvedPoints
+    from promptgs_engine.prompts import PromptBox
+    from promptgs_engine.strategies.promptgs import CARVE_ERROR_THRESHOLD, DRAWN_CARVE_ERROR_THRESHOLD, CarvedPoints
 
     cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=80, strategy="promptgs",
                       prompts=str(toy / "prompts_1.json"), center_prompt=True, checkpoint_every=0)
     focus = Trainer(cfg, quiet=True).focus
+    drawn = focus.prompts[0]
+    proposed = PromptBox(center=drawn.center, size=tuple(0.5 * v for v in drawn.size))
+    focus.set_prompts(focus.prompts + [proposed])
     asked = {}
 
     def carve(box, views, **kw):
@@ -251,5 +256,5 @@ def test_resampling_holds_the_centre_prompt_to_a_higher_error_bar_than_a_drawn_b
 
     monkeypatch.setattr(focus_module, "carve_prompt", carve)
     focus.resample(step=30)
-    assert asked == {0: CARVE_ERROR_THRESHOLD, 1: focus_module.CENTRE_PROMPT_CARVE_ERROR_THRESHOLD}
-    assert CARVE_ERROR_THRESHOLD < focus_module.CENTRE_PROMPT_CARVE_ERROR_THRESHOLD
+    assert asked == {0: DRAWN_CARVE_ERROR_THRESHOLD, 1: CARVE_ERROR_THRESHOLD, 2: CARVE_ERROR_THRESHOLD}
+    assert DRAWN_CARVE_ERROR_THRESHOLD < CARVE_ERROR_THRESHOLD
