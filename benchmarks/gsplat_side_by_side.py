@@ -31,8 +31,9 @@ What differs from simple_trainer, on purpose:
   ``reset_every`` names, as ours does and as simple_trainer means to, so both sides grow
   and prune alike. The Gaussian counts of both sides are in the JSON.
 
-Each run index trains A, then B (seed = run index), each in a fresh process (fresh CUDA
-context), so machine load drifts over both alike. ``--device cpu`` is a smoke mode: side A
+Each run index trains A and B (seed = run index), each in a fresh process (fresh CUDA
+context); even run indices train A first and odd ones B first, so that warm-up and machine
+load drift fall on both sides alike. ``--device cpu`` is a smoke mode: side A
 uses ``--backend cpu``, side B our CPU rasterizer in place of ``gsplat.rasterization``.
 
     python benchmarks/gsplat_side_by_side.py ../shared/data/tumbler --out out/gsplat
@@ -199,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("dataset", help="COLMAP scene folder (images/, sparse/0/)")
     ap.add_argument("--images", default="images", help="images folder inside the dataset")
     ap.add_argument("--steps", type=int, default=7000)
-    ap.add_argument("--runs", type=int, default=3, help="pairs (ours, then gsplat); seed = run index")
+    ap.add_argument("--runs", type=int, default=3, help="pairs, ours first on even run indices and gsplat first on odd; seed = run index")
     ap.add_argument("--device", default="cuda", choices=("cuda", "cpu"), help="cpu: smoke mode")
     ap.add_argument("--out", type=Path, default=Path("out/gsplat_side_by_side"), help="writes OUT.json and OUT.png")
     ap.add_argument("--sh-interval", type=int, help="gsplat side's SH degree interval (default: ours for --steps)")
@@ -220,12 +221,18 @@ def main(argv: list[str] | None = None) -> int:
     load_start = os.getloadavg()[0]
     runs = []
     for seed in range(args.runs):
-        ours = run_ours(args.dataset, args.images, args.steps, seed, args.device)
-        theirs = run_gsplat(args.dataset, args.images, args.steps, seed, args.device, sh_interval)
+        # Pairs alternate their order, so that warm-up and drift fall on both sides alike.
+        if seed % 2 == 0:
+            ours = run_ours(args.dataset, args.images, args.steps, seed, args.device)
+            theirs = run_gsplat(args.dataset, args.images, args.steps, seed, args.device, sh_interval)
+        else:
+            theirs = run_gsplat(args.dataset, args.images, args.steps, seed, args.device, sh_interval)
+            ours = run_ours(args.dataset, args.images, args.steps, seed, args.device)
         for side in (ours, theirs):
             side["ms_per_step"] = side["train_seconds"] / args.steps * 1e3
-        runs.append({"seed": seed, "ours": ours, "gsplat": theirs, "ratio": ours["ms_per_step"] / theirs["ms_per_step"]})
-        print(f"run {seed}: ours {ours['ms_per_step']:.2f} ms/step ({ours['n_gaussians']} Gaussians), "
+        runs.append({"seed": seed, "first": "ours" if seed % 2 == 0 else "gsplat", "ours": ours, "gsplat": theirs,
+                     "ratio": ours["ms_per_step"] / theirs["ms_per_step"]})
+        print(f"run {seed} ({runs[-1]['first']} first): ours {ours['ms_per_step']:.2f} ms/step ({ours['n_gaussians']} Gaussians), "
               f"gsplat {theirs['ms_per_step']:.2f} ms/step ({theirs['n_gaussians']}), ratio {runs[-1]['ratio']:.3f}", flush=True)
     result = {
         "dataset": str(args.dataset), "images": args.images, "steps": args.steps, "device": args.device,
