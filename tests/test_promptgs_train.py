@@ -11,6 +11,7 @@ from promptgs_engine.config import TrainConfig
 from promptgs_engine.errors import PromptError, PromptGSError
 from promptgs_engine.prompts import load_prompts
 from promptgs_engine.train import Trainer
+from promptgs_engine.views import rank_views
 
 
 def _inside(points, box) -> int:
@@ -232,6 +233,32 @@ def test_the_centre_prompt_takes_one_view_a_related_step_and_a_drawn_box_two(toy
     assert crops_per_region() == {0: {2}, 1: {1}}
     focus.load_state_dict(focus.state_dict())  # a resumed run still knows which box is the centre
     assert crops_per_region() == {0: {2}, 1: {1}}
+
+
+def test_the_centre_prompts_crops_rotate_over_every_view_that_sees_it(toy, tmp_path):
+    # The centre box marks where all the cameras look: its related steps crop every view
+    # that sees it in turn, a drawn box's its related_k most relevant; resampling votes in
+    # the related_k best views of both.
+    cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=400, strategy="promptgs",
+                      prompts=str(toy / "prompts_1.json"), center_prompt=True, checkpoint_every=0)
+    focus = Trainer(cfg, quiet=True).focus
+    seeing = [v.index for v in rank_views(focus.centre_prompt, focus.full_cameras)]
+    assert len(seeing) > focus.related_k
+    assert focus.schedule.regions == [focus.related[0], seeing]
+    assert [len(r) for r in focus.related] == [focus.related_k, focus.related_k]
+
+    def cropped(region: int) -> set[int]:
+        out: set[int] = set()
+        for entry in range(focus.trainer.total_steps):
+            batch = focus.schedule.batch(entry)
+            if batch.kind == "related_multiview" and batch.region == region:
+                out.update(batch.views)
+        return out
+
+    assert cropped(1) == set(seeing)
+    assert cropped(0) <= set(focus.related[0])
+    focus.load_state_dict(focus.state_dict())  # a resumed run rotates the same way
+    assert focus.schedule.regions == [focus.related[0], seeing]
 
 
 def test_resampling_votes_for_fainter_errors_in_a_drawn_box_than_in_boxes_the_run_made(toy, tmp_path, monkeypatch):
