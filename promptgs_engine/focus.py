@@ -9,7 +9,8 @@ and the prompt-side bookkeeping around the PromptGS strategy.
   image-similarity term is left off), rendered as *crops* around the box's
   projection at full training resolution: a tiny object gets the whole step's loss,
   at full detail, for the cost of a few thousand pixels. A related step holds two
-  views, and one for the centre prompt (`CENTRE_PROMPT_VIEWS_PER_STEP`). These steps
+  views, and one for the centre prompt (`CENTRE_PROMPT_VIEWS_PER_STEP`), whose crops
+  take every view that sees it in turn rather than its most relevant. These steps
   come on top of ``--iterations``, which counts whole-view steps (`run_length`).
 * **Progressive resolution.** Full-image steps run at 8×, 4×, 2× the training
   downscale before the full resolution (paper: 7k steps each at 30k; here the same
