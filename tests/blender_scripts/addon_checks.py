@@ -354,15 +354,18 @@ def dataset_generation_runs_in_background():
 @check
 def reconstruct_from_photos_imports_the_result():
     """sfm runs in the background, its stage line shows, and its dataset is imported."""
-    fake_trainer("ok")
+    fake_trainer("stepwise")  # the fake holds at its mapping stage until sfm_go exists
     photos = Path(config["tumbler"]) / "images"
     bpy.ops.promptgs.reconstruct(directory=str(photos))
     assert state().sfm_status == "RUNNING", (state().sfm_status, state().sfm_message)
+    go = Path(state().sfm_out).parent / "sfm_go"
     lines = []
     training = addon("training")
     deadline = time.time() + 60
     while training.drain_and_apply(bpy.context) and time.time() < deadline:
         lines.append(state().sfm_message)
+        if state().sfm_message.startswith("mapping"):
+            go.touch()
         time.sleep(0.01)
     assert state().sfm_status == "DONE", (state().sfm_status, state().sfm_message)
     assert any(line.startswith(("features", "matching", "mapping")) for line in lines), lines

@@ -3,7 +3,8 @@
 Used as the add-on's "trainer Python" in tests (through a small executable wrapper):
 parses ``--out`` and ``--job``, writes snapshot ``.npz`` files with numpy and prints
 JSON-lines events. ``FAKE_TRAINER_MODE`` picks the behaviour: ``ok`` (default), ``crash``
-(stderr lines, exit code 3), ``slow`` (runs until interrupted; SIGINT stops it cleanly).
+(stderr lines, exit code 3), ``slow`` (runs until interrupted; SIGINT stops it cleanly),
+``stepwise`` (``sfm`` holds at its mapping stage until ``sfm_go`` appears beside its output).
 ``propose``, ``dataset`` and ``sfm`` answer as those commands do; a job with
 ``propose_prompts`` writes RUN/proposals.json half-way, as ``train --propose-prompts`` does.
 """
@@ -66,6 +67,12 @@ def sfm(argv, mode):
         for index, (stage, unit) in enumerate([("features", "img"), ("matching", "pair"), ("mapping", "img")], 1):
             total = len(photos) if unit == "img" else 3 * len(photos)
             emit(event="sfm_stage", stage=stage, index=index, n_stages=4, total=total, unit=unit, detail="")
+            if mode == "stepwise" and stage == "mapping":
+                # Wait until the test has seen this stage's line (it then writes sfm_go): on
+                # a loaded machine the whole run can otherwise end between two of its reads.
+                deadline = time.time() + 60
+                while not (out.parent / "sfm_go").exists() and time.time() < deadline:
+                    time.sleep(0.01)
             if mode == "crash" and stage == "mapping":
                 emit(event="error", message=f"{source}: only 6 of {len(photos)} images registered", stage=stage, step=None, log=None)
                 sys.exit(2)
