@@ -76,9 +76,9 @@ MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
 CENTRE_PROMPT_VIEWS_PER_STEP = 1
 # Those crops also take every training view that sees the centre box in turn, not only
 # the related_k (8) most relevant (`PromptFocus.set_prompts`): the box marks where all the
-# cameras look, not an object that some views see best. Cropping the same eight of fern's
-# 17 views left its test views under 3DGS's inside the box (0.4-1.2 dB, seed 1); over six
-# seeds fern went from -0.16 to -0.04 dB against 3DGS on the same machine
+# cameras look, not an object that some views see best. Fern's loss against 3DGS sat
+# inside the box (0.4-1.2 dB under it in the test views, seed 1); with every view in turn,
+# fern over six seeds went from -0.16 to -0.04 dB against 3DGS on the same machine
 # (docs/promptgs.md, "Views in a related step").
 # While densification runs, every FULL_SIZE_EVERY-th single-view step renders the whole
 # view at full size with 3DGS's screen filter: the growth statistics outside the prompts
