@@ -222,7 +222,8 @@ def main(argv: list[str] | None = None) -> int:
     runs = []
     for seed in range(args.runs):
         # Pairs alternate their order, so that warm-up and drift fall on both sides alike.
-        if seed % 2 == 0:
+        first = "ours" if seed % 2 == 0 else "gsplat"
+        if first == "ours":
             ours = run_ours(args.dataset, args.images, args.steps, seed, args.device)
             theirs = run_gsplat(args.dataset, args.images, args.steps, seed, args.device, sh_interval)
         else:
@@ -230,9 +231,8 @@ def main(argv: list[str] | None = None) -> int:
             ours = run_ours(args.dataset, args.images, args.steps, seed, args.device)
         for side in (ours, theirs):
             side["ms_per_step"] = side["train_seconds"] / args.steps * 1e3
-        runs.append({"seed": seed, "first": "ours" if seed % 2 == 0 else "gsplat", "ours": ours, "gsplat": theirs,
-                     "ratio": ours["ms_per_step"] / theirs["ms_per_step"]})
-        print(f"run {seed} ({runs[-1]['first']} first): ours {ours['ms_per_step']:.2f} ms/step ({ours['n_gaussians']} Gaussians), "
+        runs.append({"seed": seed, "first": first, "ours": ours, "gsplat": theirs, "ratio": ours["ms_per_step"] / theirs["ms_per_step"]})
+        print(f"run {seed} ({first} first): ours {ours['ms_per_step']:.2f} ms/step ({ours['n_gaussians']} Gaussians), "
               f"gsplat {theirs['ms_per_step']:.2f} ms/step ({theirs['n_gaussians']}), ratio {runs[-1]['ratio']:.3f}", flush=True)
     result = {
         "dataset": str(args.dataset), "images": args.images, "steps": args.steps, "device": args.device,

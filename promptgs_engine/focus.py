@@ -49,7 +49,9 @@ from .prompts import (
     PromptBox, check_visible, load_prompts, placement_warnings, project_box, prompts_from_json, scene_center_prompt,
 )
 from .strategies.promptgs import LAMBDA_DSSIM, LAMBDA_EDGE, LAMBDA_L1, append_gaussians, carve_prompt
-from .views import RELATED_MULTIVIEW, SINGLE, ViewSchedule, entries_with_related_steps, related_views, views_cap_from_memory
+from .views import (
+    RELATED_MULTIVIEW, SINGLE, ViewSchedule, entries_with_related_steps, related_views, top_k_views, views_cap_from_memory,
+)
 
 log = logging.getLogger("promptgs.focus")
 
@@ -225,7 +227,7 @@ class PromptFocus:
         # The centre box's crops rotate over every training view that sees it (see
         # CENTRE_PROMPT_VIEWS_PER_STEP); resampling still votes in its related_k best views.
         regions = [
-            related_views([p], self.full_cameras, len(self.full_cameras))[0] if p == self.centre_prompt else v
+            top_k_views(p, self.full_cameras, len(self.full_cameras)) if p == self.centre_prompt else v
             for p, v in zip(self.prompts, self.related)
         ]
         self.schedule.set_regions(
