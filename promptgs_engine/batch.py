@@ -121,7 +121,7 @@ class BatchedSteps:
         from .focus import TrainView
 
         camera = self.trainer.scene.train_cameras[planned].downscaled(self.trainer.cfg.downscale)
-        return TrainView(camera, camera.load_image(), planned)
+        return TrainView(camera, camera.load_image(device=self.trainer.device), planned)
 
     def _fresh_statistics(self) -> dict[str, Any]:
         """A copy of the strategy state whose per-view accumulators are zero: the views of

@@ -291,7 +291,7 @@ class PromptFocus:
             cw, ch = max(min(w, cam.width), 16), max(min(h, cam.height), 16)
             cx0 = min(max((x0 + x1) // 2 - cw // 2, 0), cam.width - cw)
             cy0 = min(max((y0 + y1) // 2 - ch // 2, 0), cam.height - ch)
-            gt = cam.load_image(window=(cx0, cy0, cw, ch))
+            gt = cam.load_image(window=(cx0, cy0, cw, ch), device=self.trainer.device)
             out.append(TrainView(crop_camera(cam, cx0, cy0, cw, ch), gt, v, crop=True))
         # A batch renders at one size: keep the views whose crop matches the first.
         size = (out[0].camera.width, out[0].camera.height)
@@ -313,7 +313,7 @@ class PromptFocus:
         out = []
         for v in batch.views:
             cam = self.full_cameras[v].downscaled(factor)
-            out.append(TrainView(cam, cam.load_image(), v, screen_filter=screen_filter, statistics=statistics))
+            out.append(TrainView(cam, cam.load_image(device=self.trainer.device), v, screen_filter=screen_filter, statistics=statistics))
         size = (out[0].camera.width, out[0].camera.height)
         return [t for t in out if (t.camera.width, t.camera.height) == size]
 

@@ -243,7 +243,7 @@ class Trainer:
             for i in picks:
                 cam = cams[i].downscaled(self.cfg.downscale)
                 cam = cam.downscaled(max(1, math.ceil(cam.width / self.PROBE_WIDTH)))
-                self._probe_views.append((cam, cam.load_image().to(self.device)))
+                self._probe_views.append((cam, cam.load_image(device=self.device)))
         losses = []
         for cam, gt in self._probe_views:
             img, _, _ = self.render_camera(cam, sh_degree=self.active_sh_degree(self.step))
@@ -287,7 +287,7 @@ class Trainer:
             return self.focus.plan(step)
         index = self.next_camera_index()
         camera = self.scene.train_cameras[index].downscaled(self.cfg.downscale)
-        return [TrainView(camera, camera.load_image(), index)]
+        return [TrainView(camera, camera.load_image(device=self.device), index)]
 
     def image_loss(self, img: torch.Tensor, gt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(loss, L1 map, D-SSIM map) of renders [C, H, W, 3] against ground truth: the loss

@@ -13,7 +13,7 @@ import torch
 from PIL import Image
 
 from promptgs_engine.data import Camera, Scene, load_colmap_scene
-from promptgs_engine.data.images import ImageCache, preload_images
+from promptgs_engine.data.images import DeviceImageCache, ImageCache, preload_images
 from promptgs_engine.errors import DatasetError
 
 
@@ -163,6 +163,38 @@ def test_image_cache_is_bounded(tumbler4: Scene) -> None:
     assert len(cache) == 2
     again = cache.get(cams[-1].image_path, 1)  # most recent one is still held
     assert again is cache.get(cams[-1].image_path, 1)
+
+
+def test_the_device_table_converts_every_8_bit_value_as_the_cpu_does() -> None:
+    values = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    cache = DeviceImageCache()
+    table = cache.to_unit_float(torch.from_numpy(values))
+    assert table.dtype == torch.float32
+    assert torch.equal(table, torch.from_numpy(values.astype(np.float32)).div_(255.0))
+
+
+def test_the_device_cache_is_bounded_and_keeps_the_most_recent(tumbler4: Scene) -> None:
+    cams = tumbler4.train_cameras[:5]
+    one = 150 * 200 * 3
+    cache = DeviceImageCache(max_bytes=int(2.5 * one))
+    for c in cams:
+        host = c.load_image()  # float; the cache holds what it is given, here the 8-bit copy
+        held = cache.get(c.image_path, 1, torch.device("cpu"), (host * 255).round().to(torch.uint8).numpy())
+        assert held.dtype == torch.uint8 and cache.nbytes <= cache.max_bytes
+        assert torch.equal(cache.to_unit_float(held), host)
+    assert len(cache) == 2
+    assert cache.get(cams[-1].image_path, 1, torch.device("cpu"), None) is held  # served, not re-copied
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_an_image_loaded_onto_the_gpu_equals_the_cpu_one_bit_for_bit(tumbler4: Scene) -> None:
+    cam = tumbler4.train_cameras[0]
+    for kwargs in ({}, {"window": (10, 7, 40, 30)}, {"downscale": 2}):
+        cpu = cam.load_image(**kwargs)
+        gpu = cam.load_image(device="cuda", **kwargs)
+        assert gpu.device.type == "cuda"
+        assert torch.equal(gpu.cpu(), cpu), kwargs
 
 
 def test_preload_decodes_every_image_once_when_all_fit(tumbler4: Scene, tmp_path: Path) -> None:

@@ -71,7 +71,7 @@ class ImageCache:
 
     def __init__(self, max_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         self.max_bytes = int(max_bytes)
-        self._items: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
+        self._items: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
@@ -96,19 +96,28 @@ class ImageCache:
     def get(self, path: Path, downscale: int) -> np.ndarray:
         """The decoded image, from the cache or from disk (then cached if it fits)."""
         key = (str(path), int(downscale))
-        with self._lock:
-            arr = self._items.get(key)
-            if arr is not None:
-                self._items.move_to_end(key)
-                return arr
-        arr = read_image_uint8(path, downscale)
-        arr.setflags(write=False)
-        with self._lock:
-            if key not in self._items and arr.nbytes <= self.max_bytes:
-                self._items[key] = arr
-                self._bytes += arr.nbytes
-                self._evict()
+        arr = self._held(key)
+        if arr is None:
+            arr = read_image_uint8(path, downscale)
+            arr.setflags(write=False)
+            self._hold(key, arr)
         return arr
+
+    def _held(self, key: tuple):
+        """The item under ``key``, now the most recently used, or None."""
+        with self._lock:
+            item = self._items.get(key)
+            if item is not None:
+                self._items.move_to_end(key)
+            return item
+
+    def _hold(self, key: tuple, item) -> None:
+        """Keep ``item`` (anything with ``nbytes``) if it fits, evicting the oldest."""
+        with self._lock:
+            if key not in self._items and item.nbytes <= self.max_bytes:
+                self._items[key] = item
+                self._bytes += item.nbytes
+                self._evict()
 
     def _evict(self) -> None:
         while self._bytes > self.max_bytes and self._items:
@@ -143,16 +152,59 @@ def preload_images(items: list[tuple[Path, int, int]], threads: int = 1, cache: 
     return True
 
 
+# float32(i) / 255 for every 8-bit value, computed as the CPU path computes it: indexing
+# this table converts an image on any device to the same floats, bit for bit (a CUDA
+# division by a scalar multiplies by its reciprocal, which can differ in the last bit).
+_UNIT_TABLE = np.arange(256, dtype=np.float32) / np.float32(255.0)
+
+
+class DeviceImageCache(ImageCache):
+    """Decoded 8-bit images kept on an accelerator, least recently used first out, bounded
+    in bytes over all devices. A training step then converts its image to float where it
+    renders, instead of converting on the CPU and copying four times the bytes each step."""
+
+    def __init__(self, max_bytes: int = DEFAULT_CACHE_BYTES) -> None:
+        super().__init__(max_bytes)
+        self._tables: dict[str, torch.Tensor] = {}
+
+    def clear(self) -> None:
+        super().clear()
+        self._tables.clear()
+
+    def get(self, path: Path, downscale: int, device: torch.device, host: np.ndarray | None) -> torch.Tensor:  # type: ignore[override]
+        """The uint8 image on ``device``: cached, or copied from ``host`` (then cached if it fits)."""
+        key = (str(path), int(downscale), str(device))
+        image = self._held(key)
+        if image is None:
+            image = torch.from_numpy(host.copy()).to(device)  # the host array is read-only
+            self._hold(key, image)
+        return image
+
+    def to_unit_float(self, image: torch.Tensor) -> torch.Tensor:
+        """uint8 [..] to float32 in [0, 1] on the image's device, equal to the CPU's conversion."""
+        key = str(image.device)
+        table = self._tables.get(key)
+        if table is None:
+            table = self._tables[key] = torch.from_numpy(_UNIT_TABLE).to(image.device)
+        return table[image.long()]
+
+
+DEVICE_IMAGE_CACHE = DeviceImageCache()
+
+
 def load_image_tensor(
     path: Path,
     downscale: int,
     expected_size: tuple[int, int],
     window: tuple[int, int, int, int] | None = None,
+    device: torch.device | str | None = None,
 ) -> torch.Tensor:
     """[H, W, 3] float32 in [0, 1]; checks the decoded size is `expected_size` (W, H).
 
     ``window`` (x0, y0, width, height) cuts a crop out of the 8-bit image before it
-    becomes float, so that a crop costs its own pixels, not the whole image's."""
+    becomes float, so that a crop costs its own pixels, not the whole image's.
+    ``device`` other than the CPU returns the tensor there, the same values: the 8-bit
+    image is kept on that device (`DEVICE_IMAGE_CACHE`) and converted there."""
     arr = IMAGE_CACHE.get(path, downscale)
     h, w = arr.shape[:2]
     if (w, h) != tuple(expected_size):
@@ -163,5 +215,12 @@ def load_image_tensor(
         x0, y0, cw, ch = window
         if x0 < 0 or y0 < 0 or x0 + cw > w or y0 + ch > h:
             raise ValueError(f"{path}: window {window} is not inside the {w}x{h} image")
-        arr = arr[y0 : y0 + ch, x0 : x0 + cw]
-    return torch.from_numpy(arr.astype(np.float32)).div_(255.0)
+    device = None if device is None else torch.device(device)
+    if device is None or device.type == "cpu":
+        if window is not None:
+            arr = arr[y0 : y0 + ch, x0 : x0 + cw]
+        return torch.from_numpy(arr.astype(np.float32)).div_(255.0)
+    image = DEVICE_IMAGE_CACHE.get(path, downscale, device, arr)
+    if window is not None:
+        image = image[y0 : y0 + ch, x0 : x0 + cw]
+    return DEVICE_IMAGE_CACHE.to_unit_float(image)

@@ -28,12 +28,18 @@ class Camera:
     image_path: Path
     downscale: int = 1  # factor this camera already is below the image file's resolution
 
-    def load_image(self, downscale: int = 1, window: tuple[int, int, int, int] | None = None) -> torch.Tensor:
+    def load_image(
+        self,
+        downscale: int = 1,
+        window: tuple[int, int, int, int] | None = None,
+        device: torch.device | str | None = None,
+    ) -> torch.Tensor:
         """[height // downscale, width // downscale, 3] float32 in [0, 1] (box-filtered);
-        ``window`` (x0, y0, width, height) takes a crop of it (`images.load_image_tensor`)."""
+        ``window`` (x0, y0, width, height) takes a crop of it, ``device`` puts it on an
+        accelerator with the same values (`images.load_image_tensor`)."""
         factor = self.downscale * int(downscale)
         size = (self.width // int(downscale), self.height // int(downscale))
-        return load_image_tensor(self.image_path, factor, size, window=window)
+        return load_image_tensor(self.image_path, factor, size, window=window, device=device)
 
     def downscaled(self, factor: int) -> "Camera":
         """The same view at size (width // factor, height // factor) with K divided by factor.
