@@ -40,9 +40,7 @@ def trace_worker(dataset: str, images: str, steps: int, seed: int, strategy: str
 
     torch.set_num_threads(threads)
     cfg = TrainConfig(dataset=dataset, out=out, images=images, iterations=steps, strategy=strategy, backend="cpu", seed=seed)
-    cfg.batch_size = 1  # as run_training sets them
-    cfg.screen_filter = cfg.effective_screen_filter
-    trainer = Trainer(cfg, quiet=True)
+    trainer = Trainer(cfg, quiet=True)  # derives the batch size and screen filter as run_training records them
     while trainer.step < steps:
         result = trainer.train_step()
         trainer.step += 1
@@ -78,10 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     dataset = args.dataset
     if args.toy:
         sys.path.insert(0, str(REPO))
-        from promptgs_engine.bench.toy_scene import ToySceneConfig, make_toy_scene
+        from promptgs_engine.bench.toy_scene import QUICK_TOY, make_toy_scene
 
-        dataset = str(make_toy_scene(args.out / "toy", ToySceneConfig(
-            width=128, height=96, focal=110.0, n_views=16, ground_grid=60, n_sfm_points=1500)))
+        dataset = str(make_toy_scene(args.out / "toy", QUICK_TOY))
     if not dataset:
         ap.error("give a dataset or --toy")
     traces: list[list[str]] = []

@@ -16,10 +16,9 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def toy(tmp_path_factory) -> Path:
     """A small toy scene with five tiny drones and no SfM points on them (128×96, 16 views)."""
-    from promptgs_engine.bench.toy_scene import ToySceneConfig, make_toy_scene
+    from promptgs_engine.bench.toy_scene import QUICK_TOY, make_toy_scene
 
-    cfg = ToySceneConfig(width=128, height=96, focal=110.0, n_views=16, ground_grid=60, n_sfm_points=1500)
-    return make_toy_scene(tmp_path_factory.mktemp("toy") / "scene", cfg)
+    return make_toy_scene(tmp_path_factory.mktemp("toy") / "scene", QUICK_TOY)
 
 
 @pytest.fixture(scope="session")

@@ -44,6 +44,10 @@ class ToySceneConfig:
     seed: int = 0
 
 
+# The tests' toy scene (128×96, 16 views): a 300-step run trains in seconds.
+QUICK_TOY = ToySceneConfig(width=128, height=96, focal=110.0, n_views=16, ground_grid=60, n_sfm_points=1500)
+
+
 DRONE_GROUPS = (
     # centre of the group, offsets of its drones, colours
     ((1.0, 0.6, 1.0), ((0.0, 0.0, 0.0), (0.35, -0.25, 0.2), (-0.3, 0.3, -0.15)), ((1.0, 0.1, 0.1), (1.0, 0.9, 0.1), (0.1, 0.9, 1.0))),

@@ -215,12 +215,8 @@ def load_image_tensor(
         x0, y0, cw, ch = window
         if x0 < 0 or y0 < 0 or x0 + cw > w or y0 + ch > h:
             raise ValueError(f"{path}: window {window} is not inside the {w}x{h} image")
-    device = None if device is None else torch.device(device)
-    if device is None or device.type == "cpu":
-        if window is not None:
-            arr = arr[y0 : y0 + ch, x0 : x0 + cw]
-        return torch.from_numpy(arr.astype(np.float32)).div_(255.0)
-    image = DEVICE_IMAGE_CACHE.get(path, downscale, device, arr)
+    on_cpu = device is None or torch.device(device).type == "cpu"
+    image = arr if on_cpu else DEVICE_IMAGE_CACHE.get(path, downscale, torch.device(device), arr)
     if window is not None:
         image = image[y0 : y0 + ch, x0 : x0 + cw]
-    return DEVICE_IMAGE_CACHE.to_unit_float(image)
+    return torch.from_numpy(image.astype(np.float32)).div_(255.0) if on_cpu else DEVICE_IMAGE_CACHE.to_unit_float(image)
