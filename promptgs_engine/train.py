@@ -34,6 +34,7 @@ from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
 from .metrics import loss_and_mse, mse_to_psnr
 from .render import render
+from .determinism import settle_mkl
 from .sky import sky_points
 from .strategies import DefaultSchedule, make_default_strategy
 from .strategies.default import BACKGROUND, BACKGROUND_RADIUS
@@ -132,6 +133,7 @@ class Trainer:
         dist: Dist | None = None,
     ):
         cfg.validate()
+        settle_mkl()  # before any torch math: same bits in every process (determinism.py)
         self.cfg = cfg
         # Several ranks (distributed.py), or several views a step (batch.py).
         self.dist = dist or Dist()
@@ -540,6 +542,7 @@ def run_training(
 
     from .evaluation import SUMMARY, evaluate_run
 
+    settle_mkl()  # before the scene is read (determinism.py)
     dist = dist or Dist()
     writer = dist.is_writer
     events = (events or EventWriter()) if writer else EventWriter()
