@@ -17,23 +17,15 @@ before any real work: later calls then agree in every process.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
-_settled = False
 
-
+@functools.cache
 def settle_mkl() -> None:
     """Make MKL's first vector-math call of this process on the calling thread alone (once)."""
-    global _settled
-    if _settled:
-        return
     for dtype in (torch.float32, torch.float64):
         x = torch.ones(8, dtype=dtype)  # under the 2,048-element chunk: one thread
         torch.sqrt(x)
         torch.exp(x)
-    _settled = True
-
-
-def mkl_settled() -> bool:
-    """Whether `settle_mkl` has run in this process."""
-    return _settled

@@ -26,6 +26,7 @@ from .batch import BatchedSteps, adam_settings, scale_schedule, steps_for
 from .config import TrainConfig
 from .data import Camera, Scene, load_colmap_scene
 from .data.images import preload_images
+from .determinism import settle_mkl
 from .distributed import RANK_PARAMS_ENV, Dist
 from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
@@ -34,7 +35,6 @@ from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
 from .metrics import loss_and_mse, mse_to_psnr
 from .render import render
-from .determinism import settle_mkl
 from .sky import sky_points
 from .strategies import DefaultSchedule, make_default_strategy
 from .strategies.default import BACKGROUND, BACKGROUND_RADIUS
