@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.evaluation import find_mask, load_run, read_mask, render_view
 from promptgs_engine.metrics import resize_mask, visible_objects
@@ -77,13 +78,13 @@ def summarise(rows: list[dict], runs: list[Path]) -> dict:
     for i, run in enumerate(runs):
         per_run: dict = {}
         for split in ("train", "test"):
-            ratios = np.array([r["ratios"][i] for r in rows if r["split"] == split])
-            if ratios.size == 0:
+            split_rows = [r for r in rows if r["split"] == split]
+            if not split_rows:
                 continue
+            ratios = np.array([r["ratios"][i] for r in split_rows])
             by_object = defaultdict(list)
-            for r in rows:
-                if r["split"] == split:
-                    by_object[r["object"]].append(r["ratios"][i] < RECALL_RATIO)
+            for r, ratio in zip(split_rows, ratios):
+                by_object[r["object"]].append(ratio < RECALL_RATIO)
             per_run[split] = {
                 "pairs": int(ratios.size),
                 "stand_in_recall": float((ratios < RECALL_RATIO).mean()),
@@ -149,9 +150,9 @@ def main() -> None:
         raise SystemExit(f"{args.baseline}: its dataset has no object_masks/ for its views")
     result: dict = {"baseline": str(args.baseline), "runs": [str(r) for r in args.runs], "summary": summarise(rows, args.runs)}
     if args.noise_dataset is not None:
-        cfg, _ = load_run(args.baseline)
-        result["sampling_noise"] = {"dataset": str(cfg.dataset), "other": str(args.noise_dataset),
-                                    **sampling_noise(Path(cfg.dataset), args.noise_dataset)}
+        dataset = Path(TrainConfig.load(args.baseline / "cfg.json").dataset)  # the settings only, not the model again
+        result["sampling_noise"] = {"dataset": str(dataset), "other": str(args.noise_dataset),
+                                    **sampling_noise(dataset, args.noise_dataset)}
     result["rows"] = rows
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "drone_fit.json").write_text(json.dumps(result, indent=2))
