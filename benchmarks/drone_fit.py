@@ -13,7 +13,8 @@ is a little lower than recall's; the same stand-in on both sides makes the two c
 With ``--noise-dataset`` (the same dataset rendered at another sample count,
 ``promptgs dataset mountain ... --samples N``) it also reports the ground truth's
 sampling noise: the mean |difference| between the two renders over the drones' pixels
-and over all pixels of every view.
+and over all pixels of every view, and the recall the other render gets on the test views
+as if a model had drawn it (the ceiling that the ground truth's noise leaves).
 
     python benchmarks/drone_fit.py runs/sparse/runs/sparse_3dgs_none_i1500_s0 \\
         runs/sparse/runs/sparse_promptgs-1_none_i1500_s0 --out docs/results/economy/sparse_recall_nov27
@@ -40,7 +41,7 @@ from PIL import Image
 from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.evaluation import find_mask, load_run, read_mask, render_view
-from promptgs_engine.metrics import resize_mask, visible_objects
+from promptgs_engine.metrics import object_recall, resize_mask, visible_objects
 
 RECALL_RATIO = 0.5  # as metrics.object_recall: reconstructed below half the contrast
 
@@ -95,26 +96,39 @@ def summarise(rows: list[dict], runs: list[Path]) -> dict:
     return out
 
 
+def _read_rgb(path: Path) -> torch.Tensor:
+    return torch.from_numpy(np.asarray(Image.open(path).convert("RGB"), dtype=np.float32) / 255.0)
+
+
 def sampling_noise(dataset: Path, other: Path) -> dict:
     """Mean |a − b| between two renders of one dataset (its images/), over the drones'
-    pixels (object_masks/) and over every pixel."""
-    drone, whole = [], []
+    pixels (object_masks/) and over every pixel; and, on the views with a drone-free
+    ground truth (the test views' gt_nodrones/), the recall that the other render gets as
+    if a model had drawn it (`metrics.object_recall`): what the ground truth's own noise
+    leaves of the metric."""
+    drone, whole, pairs = [], [], []
     for path in sorted((dataset / "images").iterdir()):
         twin = other / "images" / path.name
         mask_path = find_mask(dataset / "object_masks", path.name)
         if not twin.is_file():
             continue
-        a, b = (torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), dtype=np.float32) / 255.0) for p in (path, twin))
+        a, b = _read_rgb(path), _read_rgb(twin)
         diff = (a - b).abs().mean(dim=-1)
         whole.append(float(diff.mean()))
-        if mask_path is not None:
-            ids = resize_mask(read_mask(mask_path), diff.shape[0], diff.shape[1])
-            if bool((ids > 0).any()):
-                drone.append(float(diff[ids > 0].mean()))
+        if mask_path is None:
+            continue
+        ids = resize_mask(read_mask(mask_path), diff.shape[0], diff.shape[1])
+        if bool((ids > 0).any()):
+            drone.append(float(diff[ids > 0].mean()))
+        free = find_mask(dataset / "gt_nodrones", path.name)
+        if free is not None:
+            pairs += list(object_recall(b, a, _read_rgb(free), ids).values())
     return {
         "views": len(whole),
         "drone_pixels_median": float(np.median(drone)) if drone else None,
         "all_pixels_median": float(np.median(whole)) if whole else None,
+        "other_as_render_recall": float(np.mean(pairs)) if pairs else None,
+        "other_as_render_pairs": len(pairs),
     }
 
 
