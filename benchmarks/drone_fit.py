@@ -36,10 +36,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import torch
-from PIL import Image
 
 from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
+from promptgs_engine.data.images import read_image_uint8
 from promptgs_engine.evaluation import find_mask, load_run, read_mask, render_view
 from promptgs_engine.metrics import object_recall, resize_mask, visible_objects
 
@@ -97,7 +97,8 @@ def summarise(rows: list[dict], runs: list[Path]) -> dict:
 
 
 def _read_rgb(path: Path) -> torch.Tensor:
-    return torch.from_numpy(np.asarray(Image.open(path).convert("RGB"), dtype=np.float32) / 255.0)
+    """[H, W, 3] float32 in [0, 1], decoded as the trainer decodes its images."""
+    return torch.from_numpy(read_image_uint8(path).astype(np.float32) / 255.0)
 
 
 def sampling_noise(dataset: Path, other: Path) -> dict:
