@@ -35,7 +35,7 @@ TRAIN_MIN_CONFIDENCE = 0.3
 # box edge (about 60-80 pixels at the objects' depth: their crops would overlap) into one
 # prompt. On the mountain (600 steps, seed 0) a small box around each of the 16 drones,
 # drawn from step 0 at their true positions, trained them to recall 0.55; the dataset's
-# box per group of drones reaches 0.74 (README, 600 steps).
+# box per group of drones reaches 0.74 (docs/results/history.md, 600 steps).
 GROUP_LINK_EDGES = 8.0
 
 
