@@ -436,15 +436,24 @@ class PromptFocus:
     def seed_proposals(self, step: int, proposals) -> int:
         """One small Gaussian at each proposal's triangulated point (``proposals.Proposal``),
         of its candidates' median image colour, ``SEED_SCALE_PX`` pixels wide at its
-        depth, opacity `RESAMPLED_OPACITY`: the point that SfM did not triangulate. It is
-        counted and judged as a resampled one (`strategies.promptgs`)."""
+        depth, opacity `RESAMPLED_OPACITY`: the point that SfM did not triangulate. The
+        ledger counts it with the resampled Gaussians, but it is judged as one grown in a
+        prompt (protected from pruning for ``protect_steps``), not as a resampled one:
+        several views agreed on it. Judged as resampled, a seed could be removed as idle
+        (`strategies.promptgs.PromptGSStrategy.idle_resampled`) before the related steps
+        had fitted it: on the 64-sample mountain (1500 steps) drones 5 and 10 at seed 0
+        and drone 5 at seed 1 were lost (no Gaussian within their radius over opacity
+        0.004), although their proposals lay within 0.02 of them, and the drones' masked
+        PSNR spread 25.2-29.0 dB over seeds 0-2; judged as grown, 28.8-28.9 dB with no
+        drone lost (the sparse scene pays a few faint pairs: recall 0.68 against 0.73 over
+        five seeds; docs/results/proposals/README.md, "Seeds judged as grown")."""
         t = self.trainer
         added = 0
         for p in proposals:
             added += append_gaussians(
                 t.params, t.optimizers, t.strategy_state, torch.tensor([p.point], dtype=torch.float32),
                 torch.tensor([p.colour], dtype=torch.float32), scale=SEED_SCALE_PX * p.pixel,
-                opacity=RESAMPLED_OPACITY, step=step,
+                opacity=RESAMPLED_OPACITY, step=step, carved=False,
             )
         if added:
             t.strategy.record_resampled(t.strategy_state, added)

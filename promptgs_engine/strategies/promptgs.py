@@ -565,8 +565,11 @@ def append_gaussians(
     scale: float,
     opacity: float,
     step: int,
+    carved: bool = True,
 ) -> int:
-    """Add isotropic Gaussians (fresh optimizer state) and extend the strategy state."""
+    """Add isotropic Gaussians (fresh optimizer state) and extend the strategy state.
+    ``carved``: they are resampled ones, judged by `PromptGSStrategy.idle_resampled`
+    (False: judged as Gaussians grown in a prompt, protected for ``protect_steps``)."""
     m = means.shape[0]
     if m == 0:
         return 0
@@ -590,6 +593,6 @@ def append_gaussians(
     _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers)
     for key, value in state.items():
         if isinstance(value, torch.Tensor):
-            fill = float(step) if key == "born" else 1.0 if key == "carved" else 0.0
+            fill = float(step) if key == "born" else float(carved) if key == "carved" else 0.0
             state[key] = torch.cat([value, torch.full((m, *value.shape[1:]), fill, device=value.device, dtype=value.dtype)])
     return m
