@@ -568,8 +568,9 @@ def append_gaussians(
     carved: bool = True,
 ) -> int:
     """Add isotropic Gaussians (fresh optimizer state) and extend the strategy state.
-    ``carved``: they are resampled ones, judged by `PromptGSStrategy.idle_resampled`
-    (False: judged as Gaussians grown in a prompt, protected for ``protect_steps``)."""
+    ``carved``: they are resampled ones, which `PromptGSStrategy.idle_resampled` removes
+    while they stay faint (False: only the prune judges them, as any Gaussian; young
+    ones inside a prompt are spared for ``protect_steps`` either way)."""
     m = means.shape[0]
     if m == 0:
         return 0
