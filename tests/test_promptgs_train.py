@@ -210,6 +210,15 @@ def test_related_steps_come_on_top_of_the_whole_view_steps(toy, tmp_path):
     assert three.total_steps == unprompted.total_steps == 40
     # 3DGS's schedule for the iterations, stretched over the whole run.
     assert focused.schedule == three.schedule.stretched(50 / 40)
+    # The centre box alone: one related step per cycle of nine (focus.CENTRE_PROMPT_RATIO),
+    # the same whole-view steps; with a drawn box beside it, the paper's two in ten.
+    centre = Trainer(TrainConfig(out=str(tmp_path / "c"), strategy="promptgs", center_prompt=True, **common), quiet=True)
+    assert centre.total_steps == 45
+    crops = [any(v.crop for v in centre.plan_step(step)) for step in range(centre.total_steps)]
+    assert crops.count(False) == 40 and crops.count(True) == 5
+    both = Trainer(TrainConfig(out=str(tmp_path / "cb"), strategy="promptgs", center_prompt=True,
+                               prompts=str(toy / "prompts_1.json"), **common), quiet=True)
+    assert both.total_steps == 50
 
 
 def test_the_centre_prompt_takes_one_view_a_related_step_and_a_drawn_box_two(toy, tmp_path):
