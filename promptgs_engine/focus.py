@@ -78,6 +78,12 @@ MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
 # objects keeps two: on the 64-sample mountain (one box, seed 0) one crop a step took
 # recall from 0.78 to 0.68 (docs/promptgs.md, "Views in a related step").
 CENTRE_PROMPT_VIEWS_PER_STEP = 1
+# Those crops also take every training view that sees the centre box in turn, not only
+# the related_k (8) most relevant (`PromptFocus.set_prompts`): the box marks where all the
+# cameras look, not an object that some views see best. Fern's loss against 3DGS sat
+# inside the box (0.4-1.2 dB under it in the test views, seed 1); with every view in turn,
+# fern over six seeds went from -0.16 to -0.04 dB against 3DGS on the same machine
+# (docs/promptgs.md, "Views in a related step").
 # The view schedule of a run whose only prompt is the centre box: one related step in a
 # cycle of nine, where other runs have two in ten (`views.DEFAULT_RATIO`); the whole-view
 # steps are the same (8 per cycle), so 1500 iterations take 1688 steps, not 1875. Over six
@@ -86,12 +92,6 @@ CENTRE_PROMPT_VIEWS_PER_STEP = 1
 # its time). The box marks no object, and its crops train the densest part of the frame
 # again (docs/results/economy/README.md, "Half the centre box's related steps").
 CENTRE_PROMPT_RATIO = (2, 3, 1, 3)
-# Those crops also take every training view that sees the centre box in turn, not only
-# the related_k (8) most relevant (`PromptFocus.set_prompts`): the box marks where all the
-# cameras look, not an object that some views see best. Fern's loss against 3DGS sat
-# inside the box (0.4-1.2 dB under it in the test views, seed 1); with every view in turn,
-# fern over six seeds went from -0.16 to -0.04 dB against 3DGS on the same machine
-# (docs/promptgs.md, "Views in a related step").
 # While densification runs, every FULL_SIZE_EVERY-th single-view step renders the whole
 # view at full size with 3DGS's screen filter: the growth statistics outside the prompts
 # come from those alone, so that PromptGS grows there as 3DGS would.
@@ -151,8 +151,8 @@ def run_length(cfg) -> int:
     ``--iterations`` counts the steps that train whole views. A PromptGS run with prompts
     (a file, the centre box, or boxes found during the run) adds its related steps, which
     train crops around the prompts, on top: 1500 iterations take 1875 steps at 2:3:2:3
-    (1688 at `CENTRE_PROMPT_RATIO`, the centre box alone), so
-    the scene outside the prompts gets as many optimisation steps as under 3DGS. Taken
+    (1688 at `CENTRE_PROMPT_RATIO`, the centre box alone), so the scene outside the
+    prompts gets as many optimisation steps as under 3DGS. Taken
     out of the 1500 instead, the crops of the centre box (13% of fern's frame) left the
     rest 20% fewer steps, and fern 0.27 dB under the same run without related steps
     (seeds 0-2; docs/results/economy/README.md, "Related steps on top"). The trainer
