@@ -13,7 +13,7 @@ from promptgs_engine.gaussians import init_from_points
 from promptgs_engine.prompts import PromptBox
 from promptgs_engine.render import render
 from promptgs_engine.strategies.promptgs import (
-    DRAWN_CARVE_ERROR_THRESHOLD, PromptGSStrategy, append_gaussians, carve_prompt, spread_selection,
+    DRAWN_CARVE_ERROR_THRESHOLD, PromptGSStrategy, append_gaussians, carve_prompt, score_terms, spread_selection,
 )
 from promptgs_engine.train import make_optimizers
 
@@ -332,6 +332,30 @@ def test_score_ranks_a_large_gradient_in_a_high_loss_view_above_an_idle_gaussian
     s2._update_state(params, state2, _info(2, torch.tensor([[g, 0.0], [0.0, 0.0]]), view_loss=1.0))
     assert torch.allclose(state2["score"], 2 * state["score"])
     assert torch.allclose(error, torch.ones(2))
+
+
+def test_score_terms_pair_each_view_with_the_gaussians_it_sees():
+    """Two views seeing different Gaussians: every (view, Gaussian) pair with both radii
+    positive, in view-major order, each with the terms of its own view and Gaussian."""
+    n = 5
+    params, _ = _params(torch.zeros(n, 3))
+    with torch.no_grad():
+        params["scales"].copy_(torch.log(torch.tensor([[0.02, 0.05, 0.01]] * n)))
+    radii = torch.tensor([[[3, 3], [0, 0], [4, 2], [2, 0], [1, 1]], [[0, 0], [5, 6], [0, 0], [2, 2], [3, 3]]], dtype=torch.int32)
+    means2d = torch.zeros(2, n, 2, requires_grad=True)
+    means2d.grad = torch.arange(2 * n * 2, dtype=torch.float32).reshape(2, n, 2) * 1e-5
+    depths = torch.arange(2 * n, dtype=torch.float32).reshape(2, n) + 1.0
+    info = {"means2d": means2d, "radii": radii, "depths": depths, "width": 100, "height": 80, "n_cameras": 2}
+    cam_ids, gs_ids, value = score_terms(params, info, 2.0, 2e-4, 0.01, 0.05, False)
+    assert cam_ids.tolist() == [0, 0, 0, 1, 1, 1]
+    assert gs_ids.tolist() == [0, 2, 4, 1, 3, 4]
+    for c, g, v in zip(cam_ids.tolist(), gs_ids.tolist(), value.tolist()):
+        grad = float((means2d.grad[c, g] * torch.tensor([100 / 2 * 2, 80 / 2 * 2])).norm()) / 2e-4
+        terms = (
+            min(grad, 4.0) + 1.0 / (1.0 + float(depths[c, g]) / 2.0) + float(torch.sigmoid(params["opacities"][g].detach()))
+            + min(0.05 / (0.01 * 2.0), 4.0) + min(float(radii[c, g].max()) / (0.05 * 100), 4.0)
+        )
+        assert v == pytest.approx(math.log1p(terms), rel=1e-5)
 
 
 def test_budget_caps_growth_and_prefers_prompt_candidates():
