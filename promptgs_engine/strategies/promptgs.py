@@ -273,8 +273,8 @@ class PromptGSStrategy(ResettingDefaultStrategy):
                 # Per-Gaussian error: the per-pixel loss under its projected centre.
                 emap = info["error_map"]  # [C, H, W]
                 w, h = info["width"], info["height"]
-                n = params["means"].shape[0]
-                xy = info["means2d"].detach().reshape(-1, 2)[cam_ids * n + gs_ids]  # flat gathers, as in score_terms
+                means2d = info["means2d"].detach()  # [C, N, 2]
+                xy = means2d.reshape(-1, 2)[cam_ids * means2d.shape[1] + gs_ids]  # flat gathers, as in score_terms
                 px = xy[:, 0].long().clamp(0, w - 1)
                 py = xy[:, 1].long().clamp(0, h - 1)
                 state["error"].index_add_(0, gs_ids, emap.reshape(-1)[(cam_ids * h + py) * w + px])
