@@ -38,7 +38,7 @@ from .render import render
 from .sky import sky_points
 from .strategies import DefaultSchedule, make_default_strategy
 from .strategies.default import BACKGROUND, BACKGROUND_RADIUS
-from .strategies.promptgs import PromptGSStrategy
+from .strategies.promptgs import LAST_ROUND_JUDGED_AT, PromptGSStrategy
 
 log = logging.getLogger("promptgs.train")
 
@@ -206,6 +206,7 @@ class Trainer:
             budget=self.cfg.budget_cap,
             auto_budget=self.cfg.budget == "auto",
             protect_steps=max(sched.reset_every, 2 * sched.refine_every),
+            last_round_judgement_step=max(int(LAST_ROUND_JUDGED_AT * self.total_steps), sched.refine_stop_iter),
             **self.cfg.extra.get("promptgs", {}),
         )
 

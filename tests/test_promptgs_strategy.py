@@ -182,6 +182,36 @@ def test_outside_growth_gives_way_to_the_prompts_extra_growth():
     assert sum(s._grow_gs(params, opts, state, step=100)) == 5
 
 
+def test_resampling_s_last_round_is_judged_once_late_in_the_run():
+    # Refinements stop at step 300; the last round, resampled at 250, was never judged.
+    # At the judgement step, its Gaussians still under carve_keep_opacity go; one that
+    # brightened stays, and so do Gaussians already judged (charged) and ones never
+    # resampled, however faint. Before that step nothing goes, and it happens once.
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [0.3, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    params, opts = _params(pts)
+    s = PromptGSStrategy(refine_start_iter=0, refine_stop_iter=300, refine_every=100, reset_every=10_000,
+                         prompts=[UNIT_BOX], last_round_judgement_step=400)
+    state = s.initialize_state(scene_scale=1.0)
+    s._ensure_state(params, state)
+    with torch.no_grad():
+        params["opacities"].copy_(torch.logit(torch.tensor([0.01, 0.01, 0.5, 0.01, 0.01])))
+    state["carved"] = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])
+    state["charged"] = torch.tensor([0.0, 0.0, 0.0, 1.0, 0.0])
+    state["born"] = torch.tensor([250.0, 250.0, 250.0, 150.0, 0.0])
+    info = _info(5, torch.zeros(5, 2))
+    s.step_post_backward(params, opts, state, step=399, info=info)
+    assert params["means"].shape[0] == 5
+    s.step_post_backward(params, opts, state, step=400, info=info)
+    kept = params["means"][:, 0].detach().tolist()
+    assert [round(x, 3) for x in kept] == [0.2, 0.3, 3.0]
+    assert state["ledger"]["last_round"] == {"step": 400, "removed": 2}
+    assert state["born"].shape[0] == 3 and state["carved"].tolist() == [1.0, 1.0, 0.0]
+    with torch.no_grad():
+        params["opacities"].fill_(float(torch.logit(torch.tensor(0.01))))
+    s.step_post_backward(params, opts, state, step=500, info=info)
+    assert params["means"].shape[0] == 3  # once a run
+
+
 def test_outside_a_gradient_seen_by_too_few_statistics_steps_needs_to_be_larger():
     # Outside the prompt the summed gradient is divided by at least three views. Four
     # outside Gaussians over 3DGS's threshold, seen by 1, 2, 3 and 1 statistics steps with
