@@ -410,13 +410,10 @@ class PromptGSStrategy(ResettingDefaultStrategy):
     @torch.no_grad()
     def judge_last_round(self, params, optimizers, state, step: int) -> int:
         """Remove the resampled Gaussians that no refinement judged (not charged) and that
-        are still under ``carve_keep_opacity``; once a run. Returns how many."""
+        `idle_resampled` finds idle; once a run. Returns how many."""
         state["last_round_judged"] = True
-        if state.get("carved") is None or state["carved"].shape[0] != params["means"].shape[0]:
-            return 0
-        faint = torch.sigmoid(params["opacities"].flatten()) < self.carve_keep_opacity
-        old_enough = (step - state["born"]) >= self.refine_every
-        idle = (state["carved"] > 0) & (state["charged"] == 0) & old_enough & faint
+        self._ensure_state(params, state)
+        idle = self.idle_resampled(params, state, step) & (state["charged"] == 0)
         n = int(idle.sum())
         ledger = state.setdefault("ledger", new_ledger())
         ledger["resampled_removed"] += n
@@ -467,8 +464,9 @@ class PromptGSStrategy(ResettingDefaultStrategy):
     def _resampled_to_judge(self, params, state, step: int) -> torch.Tensor:
         """bool [N]: resampled Gaussians (and their grown copies) at least a refinement
         interval old; none in the refinement interval after an opacity reset, whose
-        clamp says nothing of what they earned."""
-        if step % self.reset_every < self.refine_every:
+        clamp says nothing of what they earned (resets stop with refinement)."""
+        last_reset = step - step % self.reset_every
+        if step - last_reset < self.refine_every and last_reset < self.refine_stop_iter:
             return torch.zeros(params["means"].shape[0], dtype=torch.bool, device=params["means"].device)
         return (state["carved"] > 0) & ((step - state["born"]) >= self.refine_every)
 
