@@ -19,6 +19,12 @@ as if a model had drawn it (the ceiling that the ground truth's noise leaves).
     python benchmarks/drone_fit.py runs/sparse/runs/sparse_3dgs_none_i1500_s0 \\
         runs/sparse/runs/sparse_promptgs-1_none_i1500_s0 --out docs/results/economy/sparse_recall_nov27
 
+Each training view is also marked ``cropped`` when it is one of the views whose crops
+the first run trained for a box drawn in its job (the box's `views.related_views`, as
+the trainer picks them), and the summary splits the training views' recall into those
+and the others, by the drone's contrast in the view (``by_contrast``): whether a drone
+is missed where the crops never train it, or wherever it is faint.
+
 Writes ``drone_fit.json`` and ``drone_fit.png`` (per drone: stand-in recall in the
 training and the test views) into ``--out``.
 """
@@ -26,6 +32,7 @@ training and the test views) into ``--out``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from collections import defaultdict
 from pathlib import Path
@@ -41,9 +48,25 @@ from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.data.images import read_image_uint8
 from promptgs_engine.evaluation import find_mask, load_run, read_mask, render_view
+from promptgs_engine.focus import load_prompt_setting
 from promptgs_engine.metrics import object_recall, resize_mask, visible_objects
+from promptgs_engine.views import related_views
 
 RECALL_RATIO = 0.5  # as metrics.object_recall: reconstructed below half the contrast
+RELATED_K = 8  # views per drawn box whose crops a run trains (focus.PromptFocus's related_k)
+CONTRAST_EDGES = (0.04, 0.07, 0.15)  # the drones' contrast bands of the summary
+
+
+def cropped_views(run: Path, scene) -> set[str]:
+    """Names of the training views whose crops ``run`` trained for the boxes drawn in its
+    job (not the centre box, whose crops rotate over every view; not proposals, which
+    come during the run): each box's RELATED_K most relevant views."""
+    cfg, _ = load_run(run)
+    if cfg.prompts is None:
+        return set()
+    cameras = [c.downscaled(cfg.downscale) for c in scene.train_cameras]
+    boxes = load_prompt_setting(dataclasses.replace(cfg, center_prompt=False))
+    return {cameras[i].name for views in related_views(boxes, cameras, RELATED_K) for i in views}
 
 
 def fit_pairs(baseline: Path, runs: list[Path]) -> list[dict]:
@@ -52,6 +75,7 @@ def fit_pairs(baseline: Path, runs: list[Path]) -> list[dict]:
     base_cfg, base = load_run(baseline)
     models = [load_run(r) for r in runs]
     scene = load_colmap_scene(base_cfg.dataset, images=base_cfg.images, test_every=base_cfg.test_every)
+    cropped = cropped_views(runs[0], scene) if runs else set()
     masks = Path(base_cfg.dataset) / "object_masks"
     rows = []
     for split, cameras in (("train", scene.train_cameras), ("test", scene.test_cameras)):
@@ -67,7 +91,7 @@ def fit_pairs(baseline: Path, runs: list[Path]) -> list[dict]:
             for obj, pixels, contrast in visible_objects(ids, (stand_in - gt).abs().mean(dim=-1)):
                 rows.append({
                     "split": split, "view": camera.name, "object": obj, "pixels": int(pixels.sum()),
-                    "contrast": contrast,
+                    "contrast": contrast, "cropped": split == "train" and camera.name in cropped,
                     "ratios": [float((r - gt).abs().mean(dim=-1)[pixels].mean()) / contrast for r in renders],
                     "signed": [float((r - gt)[pixels].mean()) for r in renders],
                 })
@@ -92,8 +116,23 @@ def summarise(rows: list[dict], runs: list[Path]) -> dict:
                 "ratio_median": float(np.median(ratios)),
                 "per_object": {str(k): round(float(np.mean(v)), 3) for k, v in sorted(by_object.items())},
             }
+        train_rows = [r for r in rows if r["split"] == "train"]
+        if any(r["cropped"] for r in train_rows):
+            per_run["train_by_crops"] = {
+                name: recall_by_contrast([r for r in train_rows if r["cropped"] == flag], i)
+                for name, flag in (("cropped", True), ("other", False))
+            }
         out[run.name] = per_run
     return out
+
+
+def recall_by_contrast(rows: list[dict], run: int) -> dict:
+    """Stand-in recall of run ``run`` over ``rows``, in all and per contrast band."""
+    def recall(sel: list[dict]) -> dict:
+        return {"pairs": len(sel), "stand_in_recall": round(float(np.mean([r["ratios"][run] < RECALL_RATIO for r in sel])), 3) if sel else None}
+    edges = (0.0, *CONTRAST_EDGES, float("inf"))
+    bands = {f"{lo:g}-{hi:g}": recall([r for r in rows if lo <= r["contrast"] < hi]) for lo, hi in zip(edges[:-1], edges[1:])}
+    return {**recall(rows), "by_contrast": bands}
 
 
 def _read_rgb(path: Path) -> torch.Tensor:
