@@ -48,25 +48,23 @@ from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.data.images import read_image_uint8
 from promptgs_engine.evaluation import find_mask, load_run, read_mask, render_view
-from promptgs_engine.focus import load_prompt_setting
+from promptgs_engine.focus import RELATED_VIEWS, load_prompt_setting
 from promptgs_engine.metrics import object_recall, resize_mask, visible_objects
 from promptgs_engine.views import related_views
 
 RECALL_RATIO = 0.5  # as metrics.object_recall: reconstructed below half the contrast
-RELATED_K = 8  # views per drawn box whose crops a run trains (focus.PromptFocus's related_k)
 CONTRAST_EDGES = (0.04, 0.07, 0.15)  # the drones' contrast bands of the summary
 
 
-def cropped_views(run: Path, scene) -> set[str]:
-    """Names of the training views whose crops ``run`` trained for the boxes drawn in its
-    job (not the centre box, whose crops rotate over every view; not proposals, which
-    come during the run): each box's RELATED_K most relevant views."""
-    cfg, _ = load_run(run)
+def cropped_views(cfg: TrainConfig, scene) -> set[str]:
+    """Names of the training views whose crops the run of ``cfg`` trained for the boxes
+    drawn in its job (not the centre box, whose crops rotate over every view; not
+    proposals, which come during the run): each box's RELATED_VIEWS most relevant views."""
     if cfg.prompts is None:
         return set()
     cameras = [c.downscaled(cfg.downscale) for c in scene.train_cameras]
     boxes = load_prompt_setting(dataclasses.replace(cfg, center_prompt=False))
-    return {cameras[i].name for views in related_views(boxes, cameras, RELATED_K) for i in views}
+    return {cameras[i].name for views in related_views(boxes, cameras, RELATED_VIEWS) for i in views}
 
 
 def fit_pairs(baseline: Path, runs: list[Path]) -> list[dict]:
@@ -75,7 +73,7 @@ def fit_pairs(baseline: Path, runs: list[Path]) -> list[dict]:
     base_cfg, base = load_run(baseline)
     models = [load_run(r) for r in runs]
     scene = load_colmap_scene(base_cfg.dataset, images=base_cfg.images, test_every=base_cfg.test_every)
-    cropped = cropped_views(runs[0], scene) if runs else set()
+    cropped = cropped_views(models[0][0], scene) if models else set()
     masks = Path(base_cfg.dataset) / "object_masks"
     rows = []
     for split, cameras in (("train", scene.train_cameras), ("test", scene.test_cameras)):

@@ -69,6 +69,7 @@ MIN_PROGRESSIVE_WIDTH = 100
 RESAMPLED_OPACITY = 0.5  # of the Gaussians resampling adds
 SEED_SCALE_PX = 0.7  # width of the Gaussian seeded at a proposed point, in pixels at its depth (as resampling's)
 MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
+RELATED_VIEWS = 8  # views per prompt whose crops its related steps train (`PromptFocus.set_prompts`)
 # Views in a related step of the centre prompt (`--center-prompt`); other prompts take the
 # schedule's cap (2). The centre box marks no object, only where the cameras look, and its
 # crops hold the densest part of a real capture (37% of tumbler's frame at 1/4 size), so two
@@ -79,7 +80,7 @@ MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
 # recall from 0.78 to 0.68 (docs/promptgs.md, "Views in a related step").
 CENTRE_PROMPT_VIEWS_PER_STEP = 1
 # Those crops also take every training view that sees the centre box in turn, not only
-# the related_k (8) most relevant (`PromptFocus.set_prompts`): the box marks where all the
+# the RELATED_VIEWS (8) most relevant (`PromptFocus.set_prompts`): the box marks where all the
 # cameras look, not an object that some views see best. Fern's loss against 3DGS sat
 # inside the box (0.4-1.2 dB under it in the test views, seed 1); with every view in turn,
 # fern over six seeds went from -0.16 to -0.04 dB against 3DGS on the same machine
@@ -188,7 +189,7 @@ def available_memory_bytes() -> int:
 
 class PromptFocus:
     def __init__(
-        self, trainer, prompts: list[PromptBox], max_views: int = 2, related_k: int = 8, field_every: int = 10
+        self, trainer, prompts: list[PromptBox], max_views: int = 2, related_k: int = RELATED_VIEWS, field_every: int = 10
     ):
         self.trainer = trainer
         cfg = trainer.cfg
