@@ -25,6 +25,22 @@ the trainer picks them), and the summary splits the training views' recall into 
 and the others, by the drone's contrast in the view (``by_contrast``): whether a drone
 is missed where the crops never train it, or wherever it is faint.
 
+Each row also holds each run's mean error over the drone's background ring (the pixels
+within RING_PX of the drone that no object covers, ``ring``): how much of a drone's error
+the terrain behind it would explain; the summary gives its median over contrast
+(``ring_over_contrast``) over all pairs, the fitted ones and the missed ones.
+
+On the test views, whose drone-free ground truth exists, each run's misses are split
+into the drones' part and the background's (``test_split``, for runs on a generated
+dataset): the run's Gaussians within
+DRONE_GAUSSIANS_WITHIN of a drone's centre (the dataset's ``scene.json``) are its drones;
+the render without them is its background. Recall is taken again with a perfect
+background (the drone-free truth plus what the drones' Gaussians change) and with perfect
+drones (the run's background plus what the true drones change), and per pair the drones'
+change is compared with the true one over the drone's neighbourhood: ``energy``, the
+least-squares factor from the true change to the rendered one (1: as strong as the truth,
+2: twice), with the drone's distance from the camera.
+
 Writes ``drone_fit.json`` and ``drone_fit.png`` (per drone: stand-in recall in the
 training and the test views) into ``--out``.
 """
@@ -54,6 +70,9 @@ from promptgs_engine.views import related_views
 
 RECALL_RATIO = 0.5  # as metrics.object_recall: reconstructed below half the contrast
 CONTRAST_EDGES = (0.04, 0.07, 0.15)  # the drones' contrast bands of the summary
+RING_PX = 3  # the background ring: pixels this close to a drone (Chebyshev distance)
+NEAR_PX = 2  # a drone's neighbourhood for its energy: pixels this close to it
+DRONE_GAUSSIANS_WITHIN = 0.5  # a drone's Gaussians: this close to its centre (scene units; drones are 0.1-0.2 across)
 
 
 def cropped_views(cfg: TrainConfig, scene) -> set[str]:
@@ -87,13 +106,61 @@ def fit_pairs(baseline: Path, runs: list[Path]) -> list[dict]:
             stand_in = render_view(base, cam, base_cfg.backend, base_cfg.effective_screen_filter, base_cfg.rasterize_mode)
             renders = [render_view(m, cam, c.backend, c.effective_screen_filter, c.rasterize_mode) for c, m in models]
             for obj, pixels, contrast in visible_objects(ids, (stand_in - gt).abs().mean(dim=-1)):
+                ring = background_ring(pixels, ids)
                 rows.append({
                     "split": split, "view": camera.name, "object": obj, "pixels": int(pixels.sum()),
                     "contrast": contrast, "cropped": split == "train" and camera.name in cropped,
                     "ratios": [float((r - gt).abs().mean(dim=-1)[pixels].mean()) / contrast for r in renders],
                     "signed": [float((r - gt)[pixels].mean()) for r in renders],
+                    "ring": [float((r - gt).abs().mean(dim=-1)[ring].mean()) for r in renders],
                 })
     return rows
+
+
+def dilate(pixels: torch.Tensor, by: int) -> torch.Tensor:
+    """[H, W] bool: the pixels within ``by`` of ``pixels`` (Chebyshev distance)."""
+    return torch.nn.functional.max_pool2d(pixels[None, None].float(), 2 * by + 1, stride=1, padding=by)[0, 0] > 0
+
+
+def background_ring(pixels: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    """[H, W] bool: the pixels within RING_PX of ``pixels`` that no object of ``ids`` covers."""
+    return dilate(pixels, RING_PX) & (ids == 0)
+
+
+def split_test_misses(run: Path) -> dict:
+    """Recall on the test views as rendered, with a perfect background and with perfect
+    drones, and per (drone, view) pair the drones' rendered change against the true one
+    (see the module docstring)."""
+    cfg, params = load_run(run)
+    dataset = Path(cfg.dataset)
+    drones = {d["id"]: d["centre"] for d in json.loads((dataset / "scene.json").read_text())["drones"]}
+    centres = torch.tensor(list(drones.values()), dtype=params["means"].dtype)
+    far = torch.cdist(params["means"].detach(), centres).min(dim=1).values > DRONE_GAUSSIANS_WITHIN
+    background = torch.nn.ParameterDict({k: torch.nn.Parameter(v.detach()[far], requires_grad=False) for k, v in params.items()})
+    scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
+    recalls: dict[str, list[bool]] = {"as_rendered": [], "perfect_background": [], "perfect_drones": []}
+    pairs = []
+    for camera in scene.test_cameras:
+        mask_path, free_path = find_mask(dataset / "object_masks", camera.name), find_mask(dataset / "gt_nodrones", camera.name)
+        if mask_path is None or free_path is None:
+            continue
+        cam = camera.downscaled(cfg.downscale)
+        ids = resize_mask(read_mask(mask_path), cam.height, cam.width)
+        gt, free = cam.load_image(), _read_rgb(free_path)
+        full = render_view(params, cam, cfg.backend, cfg.effective_screen_filter, cfg.rasterize_mode)
+        bare = render_view(background, cam, cfg.backend, cfg.effective_screen_filter, cfg.rasterize_mode)
+        drawn, true = full - bare, gt - free
+        with_true_background = object_recall(free + drawn, gt, free, ids)
+        recalls["as_rendered"] += object_recall(full, gt, free, ids).values()
+        recalls["perfect_background"] += with_true_background.values()
+        recalls["perfect_drones"] += object_recall(bare + true, gt, free, ids).values()
+        for obj, fitted in with_true_background.items():
+            near = dilate(ids == obj, NEAR_PX)
+            d, t = drawn[near].flatten(), true[near].flatten()
+            centre = torch.tensor([*drones[obj], 1.0], dtype=cam.world_to_camera.dtype)
+            pairs.append({"view": camera.name, "object": obj, "distance": float((cam.world_to_camera @ centre)[2]),
+                          "energy": float((d * t).sum() / (t * t).sum()), "fitted_with_true_background": fitted})
+    return {"pairs": len(recalls["as_rendered"]), **{k: float(np.mean(v)) for k, v in recalls.items()}, "rows": pairs}
 
 
 def summarise(rows: list[dict], runs: list[Path]) -> dict:
@@ -113,6 +180,7 @@ def summarise(rows: list[dict], runs: list[Path]) -> dict:
                 "stand_in_recall": float((ratios < RECALL_RATIO).mean()),
                 "ratio_median": float(np.median(ratios)),
                 "per_object": {str(k): round(float(np.mean(v)), 3) for k, v in sorted(by_object.items())},
+                "ring_over_contrast": ring_over_contrast(split_rows, i),
             }
         train_rows = [r for r in rows if r["split"] == "train"]
         if any(r["cropped"] for r in train_rows):
@@ -125,12 +193,23 @@ def summarise(rows: list[dict], runs: list[Path]) -> dict:
 
 
 def recall_by_contrast(rows: list[dict], run: int) -> dict:
-    """Stand-in recall of run ``run`` over ``rows``, in all and per contrast band."""
+    """Stand-in recall of run ``run`` over ``rows``, in all and per contrast band, and
+    the background ring's error over contrast."""
     def recall(sel: list[dict]) -> dict:
         return {"pairs": len(sel), "stand_in_recall": round(float(np.mean([r["ratios"][run] < RECALL_RATIO for r in sel])), 3) if sel else None}
     edges = (0.0, *CONTRAST_EDGES, float("inf"))
     bands = {f"{lo:g}-{hi:g}": recall([r for r in rows if lo <= r["contrast"] < hi]) for lo, hi in zip(edges[:-1], edges[1:])}
-    return {**recall(rows), "by_contrast": bands}
+    return {**recall(rows), "by_contrast": bands, "ring_over_contrast": ring_over_contrast(rows, run)}
+
+
+def ring_over_contrast(rows: list[dict], run: int) -> dict:
+    """Median of run ``run``'s background-ring error over the drone's contrast, over all
+    of ``rows`` and over the fitted and the missed pairs apart."""
+    def median(sel: list[dict]) -> float | None:
+        return round(float(np.median([r["ring"][run] / r["contrast"] for r in sel])), 3) if sel else None
+    fitted = [r for r in rows if r["ratios"][run] < RECALL_RATIO]
+    missed = [r for r in rows if r["ratios"][run] >= RECALL_RATIO]
+    return {"all": median(rows), "fitted": median(fitted), "missed": median(missed)}
 
 
 def _read_rgb(path: Path) -> torch.Tensor:
@@ -205,6 +284,8 @@ def main() -> None:
         dataset = Path(TrainConfig.load(args.baseline / "cfg.json").dataset)  # the settings only, not the model again
         result["sampling_noise"] = {"dataset": str(dataset), "other": str(args.noise_dataset),
                                     **sampling_noise(dataset, args.noise_dataset)}
+    generated = [r for r in args.runs if (Path(TrainConfig.load(r / "cfg.json").dataset) / "scene.json").is_file()]
+    result["test_split"] = {r.name: split_test_misses(r) for r in generated}
     result["rows"] = rows
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "drone_fit.json").write_text(json.dumps(result, indent=2))
