@@ -74,6 +74,8 @@ RING_PX = 3  # the background ring: pixels this close to a drone (Chebyshev dist
 NEAR_PX = 2  # a drone's neighbourhood for its energy: pixels this close to it
 DRONE_GAUSSIANS_WITHIN = 0.5  # a drone's Gaussians: this close to its centre (scene units; drones are 0.1-0.2 across)
 
+Run = tuple[TrainConfig, torch.nn.ParameterDict]  # a run's settings and Gaussians (`evaluation.load_run`)
+
 
 def cropped_views(cfg: TrainConfig, scene) -> set[str]:
     """Names of the training views whose crops the run of ``cfg`` trained for the boxes
@@ -86,12 +88,10 @@ def cropped_views(cfg: TrainConfig, scene) -> set[str]:
     return {cameras[i].name for views in related_views(boxes, cameras, RELATED_VIEWS) for i in views}
 
 
-def fit_pairs(baseline: Path, runs: list[Path]) -> list[dict]:
+def fit_pairs(baseline: Run, models: list[Run], scene) -> list[dict]:
     """One row per (view, drone) of every view with an object mask: split, stand-in
     contrast, and each run's error / contrast and signed mean error (+: brighter)."""
-    base_cfg, base = load_run(baseline)
-    models = [load_run(r) for r in runs]
-    scene = load_colmap_scene(base_cfg.dataset, images=base_cfg.images, test_every=base_cfg.test_every)
+    base_cfg, base = baseline
     cropped = cropped_views(models[0][0], scene) if models else set()
     masks = Path(base_cfg.dataset) / "object_masks"
     rows = []
@@ -127,17 +127,16 @@ def background_ring(pixels: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
     return dilate(pixels, RING_PX) & (ids == 0)
 
 
-def split_test_misses(run: Path) -> dict:
+def split_test_misses(run: Run, scene) -> dict:
     """Recall on the test views as rendered, with a perfect background and with perfect
     drones, and per (drone, view) pair the drones' rendered change against the true one
     (see the module docstring)."""
-    cfg, params = load_run(run)
+    cfg, params = run
     dataset = Path(cfg.dataset)
     drones = {d["id"]: d["centre"] for d in json.loads((dataset / "scene.json").read_text())["drones"]}
     centres = torch.tensor(list(drones.values()), dtype=params["means"].dtype)
     far = torch.cdist(params["means"].detach(), centres).min(dim=1).values > DRONE_GAUSSIANS_WITHIN
     background = torch.nn.ParameterDict({k: torch.nn.Parameter(v.detach()[far], requires_grad=False) for k, v in params.items()})
-    scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     recalls: dict[str, list[bool]] = {"as_rendered": [], "perfect_background": [], "perfect_drones": []}
     pairs = []
     for camera in scene.test_cameras:
@@ -276,16 +275,20 @@ def main() -> None:
     ap.add_argument("--noise-dataset", type=Path, help="the run's dataset rendered at another sample count")
     ap.add_argument("--out", type=Path, default=Path("runs/drone_fit"))
     args = ap.parse_args()
-    rows = fit_pairs(args.baseline, args.runs)
+    baseline = load_run(args.baseline)
+    models = [load_run(r) for r in args.runs]
+    base_cfg = baseline[0]
+    scene = load_colmap_scene(base_cfg.dataset, images=base_cfg.images, test_every=base_cfg.test_every)
+    rows = fit_pairs(baseline, models, scene)
     if not rows:
         raise SystemExit(f"{args.baseline}: its dataset has no object_masks/ for its views")
     result: dict = {"baseline": str(args.baseline), "runs": [str(r) for r in args.runs], "summary": summarise(rows, args.runs)}
     if args.noise_dataset is not None:
-        dataset = Path(TrainConfig.load(args.baseline / "cfg.json").dataset)  # the settings only, not the model again
+        dataset = Path(base_cfg.dataset)
         result["sampling_noise"] = {"dataset": str(dataset), "other": str(args.noise_dataset),
                                     **sampling_noise(dataset, args.noise_dataset)}
-    generated = [r for r in args.runs if (Path(TrainConfig.load(r / "cfg.json").dataset) / "scene.json").is_file()]
-    result["test_split"] = {r.name: split_test_misses(r) for r in generated}
+    result["test_split"] = {path.name: split_test_misses(run, scene) for path, run in zip(args.runs, models)
+                            if (Path(run[0].dataset) / "scene.json").is_file()}
     result["rows"] = rows
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "drone_fit.json").write_text(json.dumps(result, indent=2))
