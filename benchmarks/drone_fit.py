@@ -39,7 +39,13 @@ background (the drone-free truth plus what the drones' Gaussians change) and wit
 drones (the run's background plus what the true drones change), and per pair the drones'
 change is compared with the true one over the drone's neighbourhood: ``energy``, the
 least-squares factor from the true change to the rendered one (1: as strong as the truth,
-2: twice), with the drone's distance from the camera.
+2: twice), with the drone's distance from the camera and the camera's elevation above the
+drone (degrees), and their median by band of each (``by_distance``, ``by_elevation``);
+``true_change`` is the true change summed over the neighbourhood (|RGB|), the drone's
+strength in that view.
+One more recall, ``true_energy``, takes the perfect background's again with
+each pair's drawn change divided by its ``energy``: what the drones' placement and shape
+would give if each pair were drawn exactly as strong as the truth.
 
 Writes ``drone_fit.json`` and ``drone_fit.png`` (per drone: stand-in recall in the
 training and the test views) into ``--out``.
@@ -73,6 +79,12 @@ CONTRAST_EDGES = (0.04, 0.07, 0.15)  # the drones' contrast bands of the summary
 RING_PX = 3  # the background ring: pixels this close to a drone (Chebyshev distance)
 NEAR_PX = 2  # a drone's neighbourhood for its energy: pixels this close to it
 DRONE_GAUSSIANS_WITHIN = 0.5  # a drone's Gaussians: this close to its centre (scene units; drones are 0.1-0.2 across)
+# Bands for the test pairs' energy: distance from the camera (scene units; the sparse
+# scene's cropped views see the box's drones from a median 33), and the camera's elevation
+# above the drone (degrees; the sparse scene's low ring sees its drones from 6-15, the high
+# ring from 21-39).
+DISTANCE_BANDS = (0.0, 36.0, 42.0, 48.0, 1000.0)
+ELEVATION_BANDS = (-90.0, 18.0, 90.0)
 
 Run = tuple[TrainConfig, torch.nn.ParameterDict]  # a run's settings and Gaussians (`evaluation.load_run`)
 
@@ -137,7 +149,7 @@ def split_test_misses(run: Run, scene) -> dict:
     centres = torch.tensor(list(drones.values()), dtype=params["means"].dtype)
     far = torch.cdist(params["means"].detach(), centres).min(dim=1).values > DRONE_GAUSSIANS_WITHIN
     background = torch.nn.ParameterDict({k: torch.nn.Parameter(v.detach()[far], requires_grad=False) for k, v in params.items()})
-    recalls: dict[str, list[bool]] = {"as_rendered": [], "perfect_background": [], "perfect_drones": []}
+    recalls: dict[str, list[bool]] = {"as_rendered": [], "perfect_background": [], "perfect_drones": [], "true_energy": []}
     pairs = []
     for camera in scene.test_cameras:
         mask_path, free_path = find_mask(dataset / "object_masks", camera.name), find_mask(dataset / "gt_nodrones", camera.name)
@@ -153,13 +165,35 @@ def split_test_misses(run: Run, scene) -> dict:
         recalls["as_rendered"] += object_recall(full, gt, free, ids).values()
         recalls["perfect_background"] += with_true_background.values()
         recalls["perfect_drones"] += object_recall(bare + true, gt, free, ids).values()
+        rotation, translation = cam.world_to_camera[:3, :3], cam.world_to_camera[:3, 3]
+        eye = -rotation.T @ translation
+        rescaled = drawn.clone()
         for obj, fitted in with_true_background.items():
             near = dilate(ids == obj, NEAR_PX)
             d, t = drawn[near].flatten(), true[near].flatten()
-            centre = torch.tensor([*drones[obj], 1.0], dtype=cam.world_to_camera.dtype)
-            pairs.append({"view": camera.name, "object": obj, "distance": float((cam.world_to_camera @ centre)[2]),
-                          "energy": float((d * t).sum() / (t * t).sum()), "fitted_with_true_background": fitted})
-    return {"pairs": len(recalls["as_rendered"]), **{k: float(np.mean(v)) for k, v in recalls.items()}, "rows": pairs}
+            energy = float((d * t).sum() / (t * t).sum())
+            rescaled[near] = drawn[near] / max(energy, 1e-3)
+            centre = torch.tensor(drones[obj], dtype=cam.world_to_camera.dtype)
+            to_eye = eye - centre
+            pairs.append({"view": camera.name, "object": obj, "distance": float((rotation @ centre + translation)[2]),
+                          "elevation": float(torch.rad2deg(torch.asin(to_eye[2] / to_eye.norm()))),
+                          "energy": energy, "true_change": float(t.abs().sum()), "fitted_with_true_background": fitted})
+        recalls["true_energy"] += object_recall(free + rescaled, gt, free, ids).values()
+    return {"pairs": len(recalls["as_rendered"]), **{k: float(np.mean(v)) for k, v in recalls.items()},
+            "by_distance": by_band(pairs, "distance", DISTANCE_BANDS), "by_elevation": by_band(pairs, "elevation", ELEVATION_BANDS),
+            "rows": pairs}
+
+
+def by_band(pairs: list[dict], key: str, edges: tuple[float, ...]) -> dict:
+    """Per band of ``key`` (from each edge to the next): the pairs, their median
+    ``energy`` and the share fitted over the true background."""
+    bands = {}
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = [p for p in pairs if lo <= p[key] < hi]
+        if sel:
+            bands[f"{lo:g}-{hi:g}"] = {"pairs": len(sel), "energy": float(np.median([p["energy"] for p in sel])),
+                                       "fitted_with_true_background": float(np.mean([p["fitted_with_true_background"] for p in sel]))}
+    return bands
 
 
 def summarise(rows: list[dict], runs: list[Path]) -> dict:
