@@ -41,8 +41,10 @@ change is compared with the true one over the drone's neighbourhood: ``energy``,
 least-squares factor from the true change to the rendered one (1: as strong as the truth,
 2: twice), with the drone's distance from the camera and the camera's elevation above the
 drone (degrees), and their median by band of each (``by_distance``, ``by_elevation``);
-``true_change`` is the true change summed over the neighbourhood (|RGB|), the drone's
-strength in that view.
+``true_change`` and ``drawn_change`` are the length of the true and the drawn change
+summed over the neighbourhood (an RGB vector: the ground truth's noise mostly cancels in
+the sum), the drone's strength in that view; ``strength_slope`` says how much of its
+change from view to view the drawn drones follow.
 One more recall, ``true_energy``, takes the perfect background's again with
 each pair's drawn change divided by its ``energy``: what the drones' placement and shape
 would give if each pair were drawn exactly as strong as the truth.
@@ -177,11 +179,28 @@ def split_test_misses(run: Run, scene) -> dict:
             to_eye = eye - centre
             pairs.append({"view": camera.name, "object": obj, "distance": float((rotation @ centre + translation)[2]),
                           "elevation": float(torch.rad2deg(torch.asin(to_eye[2] / to_eye.norm()))),
-                          "energy": energy, "true_change": float(t.abs().sum()), "fitted_with_true_background": fitted})
+                          "energy": energy, "true_change": float(true[near].sum(dim=0).norm()),
+                          "drawn_change": float(drawn[near].sum(dim=0).norm()), "fitted_with_true_background": fitted})
         recalls["true_energy"] += object_recall(free + rescaled, gt, free, ids).values()
     return {"pairs": len(recalls["as_rendered"]), **{k: float(np.mean(v)) for k, v in recalls.items()},
             "by_distance": by_band(pairs, "distance", DISTANCE_BANDS), "by_elevation": by_band(pairs, "elevation", ELEVATION_BANDS),
-            "rows": pairs}
+            "strength_slope": strength_slope(pairs), "rows": pairs}
+
+
+def strength_slope(pairs: list[dict]) -> float:
+    """How much of the true strength's change from view to view the drawn drones follow:
+    the least-squares slope of log ``drawn_change`` on log ``true_change`` over the pairs,
+    each drone's views centred on their mean (1: they follow it, 0: the drawn strength is
+    the same in every view)."""
+    xs, ys = [], []
+    for obj in {p["object"] for p in pairs}:
+        own = [p for p in pairs if p["object"] == obj and p["drawn_change"] > 0 and p["true_change"] > 0]
+        true = np.log([p["true_change"] for p in own])
+        drawn = np.log([p["drawn_change"] for p in own])
+        xs += list(true - true.mean())
+        ys += list(drawn - drawn.mean())
+    x, y = np.array(xs), np.array(ys)
+    return float(x @ y / (x @ x)) if x.size else float("nan")
 
 
 def by_band(pairs: list[dict], key: str, edges: tuple[float, ...]) -> dict:
