@@ -167,8 +167,6 @@ def split_test_misses(run: Run, scene) -> dict:
         recalls["as_rendered"] += object_recall(full, gt, free, ids).values()
         recalls["perfect_background"] += with_true_background.values()
         recalls["perfect_drones"] += object_recall(bare + true, gt, free, ids).values()
-        rotation, translation = cam.world_to_camera[:3, :3], cam.world_to_camera[:3, 3]
-        eye = -rotation.T @ translation
         rescaled = drawn.clone()
         for obj, fitted in with_true_background.items():
             near = dilate(ids == obj, NEAR_PX)
@@ -176,8 +174,8 @@ def split_test_misses(run: Run, scene) -> dict:
             energy = float((d * t).sum() / (t * t).sum())
             rescaled[near] = drawn[near] / max(energy, 1e-3)
             centre = torch.tensor(drones[obj], dtype=cam.world_to_camera.dtype)
-            to_eye = eye - centre
-            pairs.append({"view": camera.name, "object": obj, "distance": float((rotation @ centre + translation)[2]),
+            to_eye = cam.center - centre
+            pairs.append({"view": camera.name, "object": obj, "distance": float(cam.project(centre[None])[2][0]),
                           "elevation": float(torch.rad2deg(torch.asin(to_eye[2] / to_eye.norm()))),
                           "energy": energy, "true_change": float(true[near].sum(dim=0).norm()),
                           "drawn_change": float(drawn[near].sum(dim=0).norm()), "fitted_with_true_background": fitted})
