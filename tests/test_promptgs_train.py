@@ -49,12 +49,15 @@ def test_progressive_resolution_levels(toy, tmp_path, monkeypatch):
     # place and full size comes at 70% of the run, as in the paper.
     levels = [focus.downscale_at(s) for s in (0, 69, 70, 139, 140, 209, 210, 299)]
     assert levels == [2, 2, 2, 2, 2, 2, 1, 1]
-    # While densification runs (to step 150), every second single-view step is at full
-    # size: the strategy's growth statistics come from those. The strategy learns each
-    # step's downscale (1 at full size).
+    # While densification runs (steps 5 to 150), every second single-view step is at full
+    # size, and from the middle of that window (step 77) every one: the strategy's growth
+    # statistics come from those. The strategy learns each step's downscale (1 at full size).
     sched = focus.trainer.schedule
-    assert sched.refine_stop_iter == 150
-    for step, kind, expected in ((1, "random_multiview", 2.0), (2, "single", 1.0), (3, "single", 2.0), (152, "single", 2.0), (251, "random_multiview", 1.0)):
+    assert (sched.refine_start_iter, sched.refine_stop_iter) == (5, 150)
+    assert focus.every_single_view_step() == 77
+    cases = ((1, "random_multiview", 2.0), (2, "single", 1.0), (3, "single", 2.0), (73, "single", 2.0), (82, "single", 1.0),
+             (83, "single", 1.0), (152, "single", 2.0), (153, "single", 2.0), (251, "random_multiview", 1.0))
+    for step, kind, expected in cases:
         assert focus.schedule.batch(step).kind == kind
         views = focus.plan(step)
         n, (h, w) = len(views), views[0].gt.shape[:2]
@@ -65,7 +68,7 @@ def test_progressive_resolution_levels(toy, tmp_path, monkeypatch):
         # Below full size the steps keep 3DGS's screen filter, and so do the statistics
         # steps (the only ones that vote for growth outside the prompts); other full-size
         # steps use the run's.
-        statistics = step < sched.refine_stop_iter and kind == "single" and step % 2 == 0
+        statistics = step < sched.refine_stop_iter and kind == "single" and (step % 2 == 0 or step >= 77)
         assert views[0].statistics == statistics and info["votes_outside"] == statistics, step
         assert views[0].screen_filter == (0.3 if expected > 1 or statistics else None), step
     args = build_parser().parse_args(["train", str(toy), "--out", str(tmp_path / "b"), "--strategy", "promptgs", "--no-progressive"])

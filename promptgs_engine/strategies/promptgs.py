@@ -38,8 +38,10 @@ the opacity reset applied). Inside them:
   grew 82k Gaussians against 3DGS's 65k that way). Low-resolution gradients grew about
   twice the 3DGS count on the mountain (docs/promptgs.md).
 * **Enough votes outside** (``outside_min_votes``, 3). The statistics steps are about
-  30% of the steps, so an outside Gaussian's mean gradient rests on a few views (a median
-  of 3–4 per refinement interval on the sparse mountain at 1500 steps) where 3DGS
+  30% of the steps over the first half of densification (60% over the second,
+  `focus.EVERY_SINGLE_VIEW_FROM`), so an outside Gaussian's mean gradient rests on a few
+  views (a median of 3–4 per refinement interval on the sparse mountain at 1500 steps,
+  before the second half's steps were added) where 3DGS
   averages over every step. A mean of few samples crosses the threshold by chance far
   more often: the sparse mountain grew 100k Gaussians outside its box where 3DGS grew 84k
   in all. Outside, the summed gradient is divided by at least three views: a Gaussian
