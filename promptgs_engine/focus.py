@@ -214,7 +214,7 @@ class PromptFocus:
         self.auto_prompt_step = None
         sched = trainer.schedule
         if self.auto_prompts:
-            self.auto_prompt_step = sched.refine_start_iter + (sched.refine_stop_iter - sched.refine_start_iter) // 4
+            self.auto_prompt_step = sched.densification_step(0.25)
         self.proposer = None
         if cfg.propose_prompts:
             from .propose import TrainingProposer
@@ -294,9 +294,7 @@ class PromptFocus:
         """The first step from which every single-view step of the densification window is
         a statistics step (`EVERY_SINGLE_VIEW_FROM` of the window; before it, every
         FULL_SIZE_EVERY-th one)."""
-        sched = self.trainer.schedule
-        window = sched.refine_stop_iter - sched.refine_start_iter
-        return sched.refine_start_iter + int(EVERY_SINGLE_VIEW_FROM * window)
+        return self.trainer.schedule.densification_step(EVERY_SINGLE_VIEW_FROM)
 
     def is_statistics_step(self, step: int, kind: str, entry: int | None = None) -> bool:
         """Whether a single-view step is a statistics step: while densification runs, every

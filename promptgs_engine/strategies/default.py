@@ -58,6 +58,11 @@ class DefaultSchedule:
             sh_degree_interval=max(50, round(1000 * s)),
         )
 
+    def densification_step(self, fraction: float) -> int:
+        """The step ``fraction`` (0 to 1) of the way through the densification window,
+        rounded down."""
+        return self.refine_start_iter + int(fraction * (self.refine_stop_iter - self.refine_start_iter))
+
     def stretched(self, factor: float) -> "DefaultSchedule":
         """The schedule over a run ``factor`` (≥ 1) times as many steps long: start and
         stop times ``factor`` (rounded), intervals times ``factor`` rounded up, so the run
