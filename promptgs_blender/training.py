@@ -85,17 +85,18 @@ def build_job(context, out: Path) -> dict:
         "images": images,
         "iterations": settings.iterations,
         "strategy": settings.strategy,
-        "prompts": prompts.prompt_file(context.scene, root),
         "backend": backend,
         "snapshot_every": settings.snapshot_every,
         "seed": settings.seed,
     }
     if settings.budget:
         job["budget"] = settings.budget
-    if settings.auto_prompts:
-        job["auto_prompts"] = settings.auto_prompts
-    if settings.propose_prompts and settings.strategy == "promptgs":
-        job["propose_prompts"] = True
+    if settings.strategy == "promptgs":  # 3DGS and AbsGS train without prompts (the engine refuses them)
+        job["prompts"] = prompts.prompt_file(context.scene, root)
+        if settings.auto_prompts:
+            job["auto_prompts"] = settings.auto_prompts
+        if settings.propose_prompts:
+            job["propose_prompts"] = True
     if settings.compact:
         job["compact"] = True
     if settings.nproc > 1:

@@ -109,6 +109,10 @@ class TrainConfig:
             or not 0 < self.screen_filter < 100
         ):
             raise PromptGSError(f"--screen-filter must be a variance in pixels² between 0 and 100 (3DGS: 0.3), got {self.screen_filter!r}")
+        asked = self.prompt_options()
+        if asked and self.strategy != "promptgs":
+            raise PromptGSError(f"{' and '.join(asked)} needs --strategy promptgs (got {self.strategy!r}): "
+                                "3DGS and AbsGS train without prompts")
         if not isinstance(self.propose_prompts, bool):
             raise PromptGSError(f"propose_prompts must be true or false, got {self.propose_prompts!r}")
         if self.propose_prompts and self.strategy != "promptgs":
@@ -123,6 +127,19 @@ class TrainConfig:
         if not isinstance(self.compact, bool):
             raise PromptGSError(f"compact must be true or false, got {self.compact!r}")
         self.downscale  # validates resolution_scale
+
+    def prompt_options(self) -> list[str]:
+        """The options asking for prompt boxes (a prompt file or inline boxes, the centre
+        box, automatic prompts), as the command line names them. An inline prompt object
+        without boxes asks for none."""
+        inline = isinstance(self.prompts, (dict, list))
+        no_boxes = inline and not (self.prompts.get("prompts") if isinstance(self.prompts, dict) else self.prompts)
+        asked = [
+            ("--prompts", self.prompts is not None and not no_boxes),
+            ("--center-prompt", bool(self.center_prompt)),
+            ("--auto-prompts", bool(self.auto_prompts)),
+        ]
+        return [flag for flag, on in asked if on]
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -147,4 +164,8 @@ class TrainConfig:
             data.setdefault("screen_filter", BASELINE_SCREEN_FILTER)
             # ... and with one view a step.
             data.setdefault("batch_size", 1)
+            # Runs of 3DGS or AbsGS written before prompts were refused for them (the
+            # add-on sent its boxes with every strategy) trained without them.
+            if data.get("strategy", "3dgs") != "promptgs":
+                data.update(prompts=None, center_prompt=False, auto_prompts=0, propose_prompts=False)
         return cls.from_json(data)

@@ -13,7 +13,7 @@ import torch
 from promptgs_engine.cli import main
 from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
-from promptgs_engine.errors import TrainingError
+from promptgs_engine.errors import PromptGSError, TrainingError
 from promptgs_engine.evaluation import evaluate
 from promptgs_engine.train import Trainer, run_training
 
@@ -128,6 +128,30 @@ def test_bad_dataset_is_one_line_error_and_writes_nothing(tmp_path, capsys, make
     err = capsys.readouterr().err.strip()
     assert err.startswith("promptgs: error:") and "\n" not in err and expected in err
     assert not out.exists()
+
+
+def test_prompts_with_a_baseline_strategy_are_a_one_line_error_and_write_nothing(toy, tmp_path, capsys):
+    """3DGS and AbsGS train without prompts: boxes given to them are refused, not ignored
+    (a run the user took for PromptGS would otherwise train plain 3DGS)."""
+    boxes = tmp_path / "boxes.json"
+    boxes.write_text(json.dumps({"prompts": [{"center": [0, 0, 0], "size": [1, 1, 1], "rotation_wxyz": [1, 0, 0, 0]}]}))
+    out = tmp_path / "out"
+    assert main(["train", str(toy), "--out", str(out), "--prompts", str(boxes), "--quiet"]) == 2  # default strategy: 3dgs
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("promptgs: error:") and "\n" not in err
+    assert "--prompts needs --strategy promptgs" in err and "'3dgs'" in err
+    assert not out.exists()
+    with pytest.raises(PromptGSError, match="--center-prompt and --auto-prompts needs --strategy promptgs"):
+        TrainConfig(dataset=str(toy), out=str(out), strategy="absgs", center_prompt=True, auto_prompts=2).validate()
+    # an inline prompt object without boxes asks for none; with PromptGS every option is accepted
+    TrainConfig(dataset=str(toy), out=str(out), strategy="3dgs", prompts={"prompts": []}).validate()
+    TrainConfig(dataset=str(toy), out=str(out), strategy="promptgs", prompts=str(boxes), center_prompt=True).validate()
+    # a 3DGS run folder written before (the add-on sent its boxes with every strategy) still loads
+    saved = TrainConfig(dataset=str(toy), out=str(out), strategy="3dgs").to_json() | {"prompts": str(boxes), "auto_prompts": 2}
+    (tmp_path / "cfg.json").write_text(json.dumps(saved))
+    loaded = TrainConfig.load(tmp_path / "cfg.json")
+    loaded.validate()
+    assert loaded.prompts is None and loaded.auto_prompts == 0
 
 
 def test_nan_is_reported_with_step_and_parameter_and_keeps_the_checkpoint(toy, tmp_path):
