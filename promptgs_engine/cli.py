@@ -119,9 +119,9 @@ def train_config_from_args(args: argparse.Namespace):
         value = getattr(args, key)
         if value is not None:
             settings[key] = value
-    for key in ("dataset", "out"):
+    for key, what in (("dataset", "a dataset (the DATASET argument"), ("out", "a run folder (--out")):
         if not settings.get(key):
-            raise PromptGSError(f"train needs a {key} (argument or job file key {key!r})")
+            raise PromptGSError(f"train needs {what}, or the job file's key {key!r})")
     return TrainConfig.from_json(settings)
 
 

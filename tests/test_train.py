@@ -130,6 +130,13 @@ def test_bad_dataset_is_one_line_error_and_writes_nothing(tmp_path, capsys, make
     assert not out.exists()
 
 
+def test_train_without_a_run_folder_or_dataset_names_the_missing_option(toy, capsys):
+    assert main(["train", str(toy), "--quiet"]) == 2
+    assert "train needs a run folder (--out" in capsys.readouterr().err
+    assert main(["train", "--out", "unused", "--quiet"]) == 2
+    assert "train needs a dataset (the DATASET argument" in capsys.readouterr().err
+
+
 def test_prompts_with_a_baseline_strategy_are_a_one_line_error_and_write_nothing(toy, tmp_path, capsys):
     """3DGS and AbsGS train without prompts: boxes given to them are refused, not ignored
     (a run the user took for PromptGS would otherwise train plain 3DGS)."""
