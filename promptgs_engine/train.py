@@ -13,7 +13,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +34,7 @@ from .focus import PromptFocus, TrainView, load_prompt_setting, run_length
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
 from .metrics import loss_and_mse, mse_to_psnr
+from .prompts import check_visible
 from .render import render
 from .sky import sky_points
 from .strategies import DefaultSchedule, make_default_strategy
@@ -66,8 +67,10 @@ def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
         return
     if finished:
         raise PromptGSError(f"{out}: already holds a finished run (use another --out, or --overwrite)")
-    if started:
+    if (out / CHECKPOINT).exists():
         raise PromptGSError(f"{out}: holds an unfinished run (use --resume to continue it, or --overwrite)")
+    if started:
+        raise PromptGSError(f"{out}: holds a run that stopped before its first checkpoint (use --overwrite to start it again)")
 
 
 def make_optimizers(params: torch.nn.ParameterDict, cfg: TrainConfig, extent: float, batch_size: int = 1) -> dict:
@@ -533,8 +536,8 @@ def run_training(
 ) -> dict:
     """Train a run folder from start (or from its checkpoint), evaluate it, return metrics.
 
-    The dataset is read before anything is written, so bad input leaves ``cfg.out``
-    untouched. On failure the error is logged and sent as an event, and the last good
+    The dataset and the prompts are read before anything is written, so bad input
+    leaves ``cfg.out`` untouched. On failure the error is logged and sent as an event, and the last good
     checkpoint stays in the run folder. In a distributed run (``dist``) every rank trains
     and rank 0 alone writes the run folder, sends events and evaluates; the other ranks
     return an empty dict.
@@ -561,6 +564,13 @@ def run_training(
     # The run folder records the filter its renders use (evaluation renders with it too).
     cfg.screen_filter = cfg.effective_screen_filter
     scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
+    if cfg.strategy == "promptgs" and cfg.prompts is not None and not resume:
+        # The prompts are input too: a missing or malformed file, or a box that no training
+        # camera sees, ends here, before the run folder is written.
+        boxes = load_prompt_setting(replace(cfg, center_prompt=False))
+        if boxes:
+            source = "job file prompts" if isinstance(cfg.prompts, (dict, list)) else str(cfg.prompts)
+            check_visible(boxes, scene.train_cameras, source=source)
     dist.barrier("the start (every rank reads the run folder before rank 0 writes it)")
     log_path = out / "train.log"
     handler = None

@@ -137,6 +137,16 @@ def test_train_without_a_run_folder_or_dataset_names_the_missing_option(toy, cap
     assert "train needs a dataset (the DATASET argument" in capsys.readouterr().err
 
 
+def test_a_run_folder_without_a_checkpoint_is_not_offered_for_resume(toy, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "cfg.json").write_text("{}")  # a run that failed before its first checkpoint
+    assert main(["train", str(toy), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "stopped before its first checkpoint (use --overwrite" in err and "--resume" not in err
+    assert (out / "cfg.json").read_text() == "{}"
+
+
 def test_prompts_with_a_baseline_strategy_are_a_one_line_error_and_write_nothing(toy, tmp_path, capsys):
     """3DGS and AbsGS train without prompts: boxes given to them are refused, not ignored
     (a run the user took for PromptGS would otherwise train plain 3DGS)."""
@@ -153,6 +163,18 @@ def test_prompts_with_a_baseline_strategy_are_a_one_line_error_and_write_nothing
     # an inline prompt object without boxes asks for none; with PromptGS every option is accepted
     TrainConfig(dataset=str(toy), out=str(out), strategy="3dgs", prompts={"prompts": []}).validate()
     TrainConfig(dataset=str(toy), out=str(out), strategy="promptgs", prompts=str(boxes), center_prompt=True).validate()
+    # with PromptGS, a missing prompt file or a box that no camera sees writes nothing either
+    for prompts, expected in (
+        (tmp_path / "missing.json", "prompt file not found"),
+        ({"prompts": [{"center": [0, 0, 1e6], "size": [1, 1, 1], "rotation_wxyz": [1, 0, 0, 0]}]}, "far.json: prompt 0"),
+    ):
+        arg = prompts if isinstance(prompts, Path) else tmp_path / "far.json"
+        if not isinstance(prompts, Path):
+            arg.write_text(json.dumps(prompts))
+        assert main(["train", str(toy), "--out", str(out), "--strategy", "promptgs", "--prompts", str(arg), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("promptgs: error:") and "\n" not in err and expected in err, err
+        assert not out.exists()
     # a 3DGS run folder written before (the add-on sent its boxes with every strategy) still loads
     saved = TrainConfig(dataset=str(toy), out=str(out), strategy="3dgs").to_json() | {"prompts": str(boxes), "auto_prompts": 2}
     (tmp_path / "cfg.json").write_text(json.dumps(saved))
