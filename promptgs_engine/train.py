@@ -537,8 +537,8 @@ def run_training(
     """Train a run folder from start (or from its checkpoint), evaluate it, return metrics.
 
     The dataset and the prompts are read before anything is written, so bad input
-    leaves ``cfg.out`` untouched. On failure the error is logged and sent as an event, and the last good
-    checkpoint stays in the run folder. In a distributed run (``dist``) every rank trains
+    leaves ``cfg.out`` untouched. On failure the error is logged and sent as an event,
+    and the last good checkpoint stays in the run folder. In a distributed run (``dist``) every rank trains
     and rank 0 alone writes the run folder, sends events and evaluates; the other ranks
     return an empty dict.
     """
