@@ -119,9 +119,13 @@ def train_config_from_args(args: argparse.Namespace):
         value = getattr(args, key)
         if value is not None:
             settings[key] = value
-    for key, what in (("dataset", "a dataset (the DATASET argument"), ("out", "a run folder (--out")):
+    missing = {
+        "dataset": "train needs a dataset (the DATASET argument, or the job file's key 'dataset')",
+        "out": "train needs a run folder (--out, or the job file's key 'out')",
+    }
+    for key, message in missing.items():
         if not settings.get(key):
-            raise PromptGSError(f"train needs {what}, or the job file's key {key!r})")
+            raise PromptGSError(message)
     return TrainConfig.from_json(settings)
 
 

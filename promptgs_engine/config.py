@@ -109,15 +109,13 @@ class TrainConfig:
             or not 0 < self.screen_filter < 100
         ):
             raise PromptGSError(f"--screen-filter must be a variance in pixels² between 0 and 100 (3DGS: 0.3), got {self.screen_filter!r}")
-        asked = self.prompt_options()
-        if asked and self.strategy != "promptgs":
-            raise PromptGSError(f"{' and '.join(asked)} needs --strategy promptgs (got {self.strategy!r}): "
-                                "3DGS and AbsGS train without prompts")
         if not isinstance(self.propose_prompts, bool):
             raise PromptGSError(f"propose_prompts must be true or false, got {self.propose_prompts!r}")
-        if self.propose_prompts and self.strategy != "promptgs":
-            raise PromptGSError(f"--propose-prompts needs --strategy promptgs (got {self.strategy!r}); "
-                                "`promptgs propose RUN` proposes from any finished run")
+        asked = self.prompt_options()
+        if asked and self.strategy != "promptgs":
+            hint = "; `promptgs propose RUN` proposes from any finished run" if self.propose_prompts else ""
+            raise PromptGSError(f"{' and '.join(asked)} needs --strategy promptgs (got {self.strategy!r}): "
+                                f"3DGS and AbsGS train without prompts{hint}")
         if self.batch_size is not None and (
             isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 1
         ):
@@ -130,14 +128,19 @@ class TrainConfig:
 
     def prompt_options(self) -> list[str]:
         """The options asking for prompt boxes (a prompt file or inline boxes, the centre
-        box, automatic prompts), as the command line names them. An inline prompt object
-        without boxes asks for none."""
-        inline = isinstance(self.prompts, (dict, list))
-        no_boxes = inline and not (self.prompts.get("prompts") if isinstance(self.prompts, dict) else self.prompts)
+        box, automatic or proposed prompts), as the command line names them. An inline
+        prompt object without boxes asks for none."""
+        if isinstance(self.prompts, dict):
+            has_boxes = bool(self.prompts.get("prompts"))
+        elif isinstance(self.prompts, list):
+            has_boxes = bool(self.prompts)
+        else:  # a path, or None
+            has_boxes = self.prompts is not None
         asked = [
-            ("--prompts", self.prompts is not None and not no_boxes),
+            ("--prompts", has_boxes),
             ("--center-prompt", bool(self.center_prompt)),
             ("--auto-prompts", bool(self.auto_prompts)),
+            ("--propose-prompts", self.propose_prompts),
         ]
         return [flag for flag, on in asked if on]
 

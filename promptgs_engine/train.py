@@ -61,15 +61,13 @@ def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
         return
     if not out.is_dir():
         raise PromptGSError(f"{out}: exists and is not a folder")
-    finished = (out / FINAL_PLY).exists() or (out / "metrics.json").exists()
-    started = (out / CHECKPOINT).exists() or (out / "cfg.json").exists()
     if overwrite or resume:
         return
-    if finished:
+    if (out / FINAL_PLY).exists() or (out / "metrics.json").exists():
         raise PromptGSError(f"{out}: already holds a finished run (use another --out, or --overwrite)")
     if (out / CHECKPOINT).exists():
         raise PromptGSError(f"{out}: holds an unfinished run (use --resume to continue it, or --overwrite)")
-    if started:
+    if (out / "cfg.json").exists():
         raise PromptGSError(f"{out}: holds a run that stopped before its first checkpoint (use --overwrite to start it again)")
 
 
@@ -538,9 +536,9 @@ def run_training(
 
     The dataset and the prompts are read before anything is written, so bad input
     leaves ``cfg.out`` untouched. On failure the error is logged and sent as an event,
-    and the last good checkpoint stays in the run folder. In a distributed run (``dist``) every rank trains
-    and rank 0 alone writes the run folder, sends events and evaluates; the other ranks
-    return an empty dict.
+    and the last good checkpoint stays in the run folder. In a distributed run (``dist``)
+    every rank trains and rank 0 alone writes the run folder, sends events and evaluates;
+    the other ranks return an empty dict.
     """
     import json
 

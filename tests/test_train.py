@@ -164,14 +164,10 @@ def test_prompts_with_a_baseline_strategy_are_a_one_line_error_and_write_nothing
     TrainConfig(dataset=str(toy), out=str(out), strategy="3dgs", prompts={"prompts": []}).validate()
     TrainConfig(dataset=str(toy), out=str(out), strategy="promptgs", prompts=str(boxes), center_prompt=True).validate()
     # with PromptGS, a missing prompt file or a box that no camera sees writes nothing either
-    for prompts, expected in (
-        (tmp_path / "missing.json", "prompt file not found"),
-        ({"prompts": [{"center": [0, 0, 1e6], "size": [1, 1, 1], "rotation_wxyz": [1, 0, 0, 0]}]}, "far.json: prompt 0"),
-    ):
-        arg = prompts if isinstance(prompts, Path) else tmp_path / "far.json"
-        if not isinstance(prompts, Path):
-            arg.write_text(json.dumps(prompts))
-        assert main(["train", str(toy), "--out", str(out), "--strategy", "promptgs", "--prompts", str(arg), "--quiet"]) == 2
+    far = tmp_path / "far.json"
+    far.write_text(json.dumps({"prompts": [{"center": [0, 0, 1e6], "size": [1, 1, 1], "rotation_wxyz": [1, 0, 0, 0]}]}))
+    for prompt_file, expected in ((tmp_path / "missing.json", "prompt file not found"), (far, "far.json: prompt 0")):
+        assert main(["train", str(toy), "--out", str(out), "--strategy", "promptgs", "--prompts", str(prompt_file), "--quiet"]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("promptgs: error:") and "\n" not in err and expected in err, err
         assert not out.exists()
