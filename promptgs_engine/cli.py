@@ -48,7 +48,7 @@ def _add_train(sub) -> None:
     p.add_argument("--no-sky", dest="sky", action="store_false", default=None, help="no far background shell at the start (SfM points only)")
     p.add_argument(
         "--progressive", action=argparse.BooleanOptionalAction, default=None,
-        help="PromptGS: train whole views of 200 px or more at 2x below full size for 70%% of the run, the paper's 8x/4x/2x levels capped at 2x (default on; --no-progressive: full size throughout)",
+        help="PromptGS: train whole views at 8x/4x/2x below full size for 70%% of the run (default on; --no-progressive: full size throughout)",
     )
     p.add_argument(
         "--screen-filter", type=float,

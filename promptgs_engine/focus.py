@@ -13,10 +13,9 @@ and the prompt-side bookkeeping around the PromptGS strategy.
   take every view that sees it in turn rather than its most relevant; a run whose only
   prompt is the centre box has one related step a cycle, not two (`CENTRE_PROMPT_RATIO`).
   These steps come on top of ``--iterations``, which counts whole-view steps (`run_length`).
-* **Progressive resolution.** Full-image steps run below the training resolution for
-  the first 70% of the run, in the paper's three levels (8×, 4×, 2×; 7k steps each at
-  30k; here the same fractions of the run), but none coarser than 2×
-  (`COARSEST_PROGRESSIVE_LEVEL`) nor under 100 px across (`MIN_PROGRESSIVE_WIDTH`). While
+* **Progressive resolution.** Full-image steps run at 8×, 4×, 2× the training
+  downscale before the full resolution (paper: 7k steps each at 30k; here the same
+  fractions of the run; a level under 64 px across uses the coarsest that fits). While
   densification runs, some single-view steps render at full size: the strategy's
   growth statistics come from them (`is_statistics_step`). Full-size renders use the
   run's screen filter (0.1 px² for PromptGS, `config.PROMPTGS_SCREEN_FILTER`);
@@ -60,19 +59,12 @@ log = logging.getLogger("promptgs.focus")
 
 PROGRESSIVE_LEVELS = (8, 4, 2)
 PROGRESSIVE_FRACTION = 7 / 30  # of the run, per level (paper: 7000 of 30000 steps)
-# No level trains further below full size than this. The growth statistics are taken on
-# full-size views (`PromptFocus.is_statistics_step`); under a coarser level they find a
-# model loosely fitted at full size and keep growing it: the 64-sample mountain (480 px
-# views, 4x below full size for 47% of the run) ended 7000-step runs (one box) at 1.17x and
-# 1.22x 3DGS's Gaussians (seeds 0, 1); with every level at 2x, at 1.06x and 1.08x, with
-# recall and PSNR up, and at 1500 steps recall 0.795 -> 0.822 on the mean of three seeds
-# (docs/results/economy/README.md, "Whole views at most 2x below full size").
-COARSEST_PROGRESSIVE_LEVEL = 2
 # A level that would leave fewer pixels across is replaced by the coarsest that does not.
 # At 64, the 320 px views of the `sparse` mountain trained at 80 px for 47% of the run;
 # the full-size statistics steps then found the model so loosely fitted that outside the
 # prompts PromptGS grew 1.21x 3DGS's Gaussians (115k against 95k, seed 0); at 100 (2x
-# below full size for 70% of the run) 0.91x. Tumbler and fern (2x) were unchanged.
+# below full size for 70% of the run) 0.91x. The mountain (480 px: 4x, 4x, 2x), tumbler
+# and fern (2x) are unchanged.
 MIN_PROGRESSIVE_WIDTH = 100
 RESAMPLED_OPACITY = 0.5  # of the Gaussians resampling adds
 SEED_SCALE_PX = 0.7  # width of the Gaussian seeded at a proposed point, in pixels at its depth (as resampling's)
@@ -279,19 +271,17 @@ class PromptFocus:
     # -- views ------------------------------------------------------------------------
 
     def downscale_at(self, step: int) -> int:
-        """Extra downscale of full-image steps under the progressive schedule: the
-        paper's three levels (8×, 4×, 2×) for 7/30 of the run each, then full size. A
-        level coarser than COARSEST_PROGRESSIVE_LEVEL (2×), or one that would leave fewer
-        than MIN_PROGRESSIVE_WIDTH pixels across, uses the coarsest one that is neither,
-        so the low-resolution phase keeps its 70% of the run (a view of 200 px or more:
-        2× three times; under 200 px, none). Skipping such levels instead started
+        """Extra downscale of full-image steps under the progressive schedule: 8×, 4×, 2×
+        for 7/30 of the run each, then full size, as in the paper. A level that would
+        leave fewer than MIN_PROGRESSIVE_WIDTH pixels across uses the coarsest one that
+        does not, so the low-resolution phase keeps its 70% of the run (a 480 px view:
+        4×, 4×, 2×; a 320 or 252 px view: 2× three times; under 200 px, none). Skipping such levels instead started
         full-size steps at 47% of the run, and the one-box mountain run took 1.70× the
         3DGS time against 1.27×."""
         if not self.progressive:
             return 1
         width = self.full_cameras[0].width
-        usable = [f for f in PROGRESSIVE_LEVELS if f <= COARSEST_PROGRESSIVE_LEVEL and width // f >= MIN_PROGRESSIVE_WIDTH]
-        coarsest = max([1] + usable)
+        coarsest = max([1] + [f for f in PROGRESSIVE_LEVELS if width // f >= MIN_PROGRESSIVE_WIDTH])
         levels = [min(f, coarsest) for f in PROGRESSIVE_LEVELS]
         stage = int(step / (PROGRESSIVE_FRACTION * self.trainer.total_steps))
         return levels[stage] if stage < len(levels) else 1

@@ -49,11 +49,6 @@ def test_progressive_resolution_levels(toy, tmp_path, monkeypatch):
     # place and full size comes at 70% of the run, as in the paper.
     levels = [focus.downscale_at(s) for s in (0, 69, 70, 139, 140, 209, 210, 299)]
     assert levels == [2, 2, 2, 2, 2, 2, 1, 1]
-    # With a floor of 16 the paper's 8x and 4x would fit (16 and 32 px), but no level is
-    # coarser than 2x: growth statistics at full size over-grow a model trained further below.
-    monkeypatch.setattr(focus_module, "MIN_PROGRESSIVE_WIDTH", 16)
-    assert [focus.downscale_at(s) for s in (0, 69, 70, 139, 140, 209, 210, 299)] == levels
-    monkeypatch.setattr(focus_module, "MIN_PROGRESSIVE_WIDTH", 64)
     # While densification runs (steps 5 to 150), every second single-view step is at full
     # size, and from the middle of that window (step 77) every one: the strategy's growth
     # statistics come from those. The strategy learns each step's downscale (1 at full size).
