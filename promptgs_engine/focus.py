@@ -221,7 +221,7 @@ class PromptFocus:
         if cfg.propose_prompts:
             from .propose import TrainingProposer
 
-            self.proposer = TrainingProposer(trainer, self.full_cameras)
+            self.proposer = TrainingProposer(trainer, self.full_cameras, given=prompts)
         self.resample_every = max(2 * sched.refine_every, 20)
         self.progressive = cfg.progressive if cfg.progressive is not None else True
         cam0 = self.full_cameras[0]

@@ -155,6 +155,27 @@ def propose_run(run_dir: Path, out: Path | None = None, snapshot: Path | None = 
     return result, path
 
 
+def proposals_to_seed(
+    proposals: Sequence[Proposal], given: Sequence[PromptBox], earlier: Sequence[PromptBox]
+) -> list[Proposal]:
+    """The proposals of a round that get a seed Gaussian: those whose point neither a
+    prompt the run was given (a prompt file, the centre box) nor an earlier round's
+    proposal box (``earlier``: their boxes of training confidence) holds. Each object is
+    seeded once, by the first round that finds it. An object that an earlier round missed
+    but whose point lies inside a prompt an earlier round added (a group of its
+    neighbours) is seeded too: checked against those group prompts instead, the 64-sample
+    mountain's drone 6, proposed only by the second round of seed 4, got no seed, the
+    Gaussians resampling put there faded within 30 steps, twice, and it was missed in
+    every test view (docs/results/economy/README.md, "A drone proposed late")."""
+    from .prompts import contains_any
+
+    if not proposals:
+        return []
+    points = torch.tensor([p.point for p in proposals], dtype=torch.float64).reshape(-1, 3)
+    held = contains_any(list(given) + list(earlier), points).tolist() if (given or earlier) else [False] * len(proposals)
+    return [p for p, h in zip(proposals, held) if not h]
+
+
 class TrainingProposer:
     """The trainer's ``--propose-prompts``: at each of `proposal_steps` it renders every
     training view at full size, proposes, writes ``RUN/proposals.json`` (what every round
@@ -162,11 +183,13 @@ class TrainingProposer:
     own) and returns the prompts to add:
     the proposals of at least `TRAIN_MIN_CONFIDENCE`, grouped (`GROUP_LINK_EDGES`), whose
     centre no existing prompt holds (the file's ``trained_as`` lists them and their
-    members). The trainer seeds a Gaussian at each of `trained`."""
+    members). The trainer seeds a Gaussian at each of `trained` (`proposals_to_seed`).
+    ``given``: the prompts the run started with (a prompt file, the centre box)."""
 
-    def __init__(self, trainer, cameras: Sequence[Camera]):
+    def __init__(self, trainer, cameras: Sequence[Camera], given: Sequence[PromptBox] = ()):
         self.trainer = trainer
         self.cameras = list(cameras)
+        self.given = list(given)
         sched = trainer.schedule
         self.steps = proposal_steps(sched.refine_start_iter, sched.refine_stop_iter, sched.reset_every)
         self.result: ProposalSet | None = None
@@ -184,7 +207,7 @@ class TrainingProposer:
     def run(self, step: int, existing: Sequence[PromptBox]) -> list[PromptBox]:
         """Propose from the current parameters; the prompts to add (the groups whose centre
         no ``existing`` prompt holds). `trained` is then the proposals to seed: those of
-        confidence ≥ `TRAIN_MIN_CONFIDENCE` whose point no existing prompt holds."""
+        confidence ≥ `TRAIN_MIN_CONFIDENCE` that `proposals_to_seed` keeps."""
         from .prompts import contains_any
 
         t = self.trainer
@@ -192,7 +215,8 @@ class TrainingProposer:
         result = propose_views(draw, self.cameras, points=t.scene.points)
         result.info.update({"step": step, "dataset": str(t.cfg.dataset), "resolution": [self.cameras[0].width, self.cameras[0].height]})
         boxes = visible_boxes(result.boxes(TRAIN_MIN_CONFIDENCE), self.cameras)
-        self.trained = [p for p in result.proposals if any(p.box is b for b in boxes)]
+        earlier = self.result.boxes(TRAIN_MIN_CONFIDENCE) if self.result is not None else []
+        self.trained = proposals_to_seed([p for p in result.proposals if any(p.box is b for b in boxes)], self.given, earlier)
         groups: list[PromptBox] = []
         if boxes:
             edge = float(np.median([max(b.size) for b in boxes]))
@@ -200,8 +224,6 @@ class TrainingProposer:
             if existing:  # an earlier round (or the user) has these already
                 new = ~contains_any(list(existing), torch.tensor([g.center for g in groups], dtype=torch.float64))
                 groups, members = [g for g, k in zip(groups, new.tolist()) if k], [m for m, k in zip(members, new.tolist()) if k]
-                fresh = ~contains_any(list(existing), torch.tensor([p.point for p in self.trained], dtype=torch.float64))
-                self.trained = [p for p, k in zip(self.trained, fresh.tolist()) if k]
             result.info["trained_as"] = [{**g.to_dict(), "members": m} for g, m in zip(groups, members)]
         # What Blender shows and the file holds: every round's proposals (a drone the first
         # round proposed and its prompt then reconstructed is not proposed again).

@@ -318,6 +318,58 @@ def test_a_later_round_adds_to_what_earlier_rounds_proposed():
     assert second.to_arrays()["proposal_centers"].shape == (3, 3)
 
 
+def test_each_object_is_seeded_once_by_the_first_round_that_finds_it():
+    """A later round seeds what no earlier round's proposal holds, even inside a group
+    prompt an earlier round added (a neighbour's group: the object itself was missed, and
+    resampling alone did not keep it); not an object seeded already, nor one inside a
+    prompt the run was given."""
+    from promptgs_engine.prompts import PromptBox
+    from promptgs_engine.propose import proposals_to_seed
+    from promptgs_engine.proposals import Proposal, group_boxes
+
+    def proposal(p):
+        return Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1)
+
+    first = [proposal((0.0, 0.0, 0.0)), proposal((1.0, 0.0, 0.0))]
+    groups, _ = group_boxes([p.box for p in first], link=2.0)
+    assert proposals_to_seed(first, given=[], earlier=[]) == first
+    missed = proposal((0.5, 0.05, 0.0))  # between the two: inside their group's prompt
+    again = proposal((1.02, 0.0, 0.0))  # the second object, proposed again
+    assert groups[0].contains(torch.tensor([[0.5, 0.05, 0.0]])).all()
+    second = proposals_to_seed([missed, again], given=[], earlier=[p.box for p in first])
+    assert second == [missed]
+    drawn = PromptBox((0.5, 0.0, 0.0), (0.4, 0.4, 0.4))
+    assert proposals_to_seed([missed, again], given=[drawn], earlier=[p.box for p in first]) == []
+    assert proposals_to_seed([], given=[drawn], earlier=[]) == []
+
+
+def test_the_trainers_second_round_seeds_an_object_inside_a_group_prompt_of_the_first(tmp_path, monkeypatch):
+    # The rounds as the trainer runs them (TrainingProposer.run), the proposing itself
+    # replaced by what each round finds.
+    from promptgs_engine import propose as propose_module
+    from promptgs_engine.prompts import PromptBox
+    from promptgs_engine.proposals import Proposal, ProposalSet
+
+    def proposal(p):
+        return Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1)
+
+    rounds = iter([[proposal((0.0, 0.0, 0.0)), proposal((1.0, 0.0, 0.0))],
+                   [proposal((0.5, 0.05, 0.0)), proposal((1.02, 0.0, 0.0))]])
+    monkeypatch.setattr(propose_module, "params_renderer", lambda *a, **k: None)
+    monkeypatch.setattr(propose_module, "propose_views", lambda draw, cams, points=None: ProposalSet(next(rounds), [], {}, {"v": 1}))
+    monkeypatch.setattr(propose_module, "visible_boxes", lambda boxes, cams: list(boxes))
+    trainer = SimpleNamespace(
+        params=None, backend="cpu", screen_filter=0.1, cfg=SimpleNamespace(rasterize_mode="classic", dataset="d"),
+        active_sh_degree=lambda step: 0, scene=SimpleNamespace(points=torch.zeros(0, 3)),
+        dist=SimpleNamespace(is_writer=True), out=tmp_path, schedule=SimpleNamespace(refine_start_iter=0, refine_stop_iter=300, reset_every=100),
+    )
+    proposer = propose_module.TrainingProposer(trainer, [SimpleNamespace(width=64, height=48)])
+    groups = proposer.run(150, [])
+    assert len(groups) == 1 and [p.point for p in proposer.trained] == [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0)]
+    assert proposer.run(250, groups) == []  # no new group: both points lie in the first one
+    assert [p.point for p in proposer.trained] == [(0.5, 0.05, 0.0)]  # but the missed object is seeded
+
+
 def test_a_moving_object_is_reported_not_boxed():
     cams = ring_cameras()
     result = propose(cams, evidence_for(cams, drone=DRONE, moving=True))
