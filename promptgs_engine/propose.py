@@ -169,10 +169,8 @@ def proposals_to_seed(
     every test view (docs/results/economy/README.md, "A drone proposed late")."""
     from .prompts import contains_any
 
-    if not proposals:
-        return []
     points = torch.tensor([p.point for p in proposals], dtype=torch.float64).reshape(-1, 3)
-    held = contains_any(list(given) + list(earlier), points).tolist() if (given or earlier) else [False] * len(proposals)
+    held = contains_any([*given, *earlier], points).tolist()
     return [p for p, h in zip(proposals, held) if not h]
 
 

@@ -89,6 +89,14 @@ def evidence_for(cams, spots=False, drone=None, moving=False, seed=0, wire=False
     return out
 
 
+def proposal_at(point):
+    """A confident proposal with a small box around ``point`` (no evidence)."""
+    from promptgs_engine.prompts import PromptBox
+    from promptgs_engine.proposals import Proposal
+
+    return Proposal(PromptBox(point, (0.2, 0.2, 0.2)), 0.8, point, [], 20, 18, 0.5, 0.1)
+
+
 def test_a_blob_the_render_misses_is_a_candidate_at_its_pixel():
     cam = ring_cameras()[0]
     image, _ = draw(cam, drone=DRONE)
@@ -300,11 +308,10 @@ def test_a_later_round_adds_to_what_earlier_rounds_proposed():
     """The second round keeps showing the first one's proposals (its prompts may have
     reconstructed them, so they are not proposed again), adds only what no earlier box
     holds, and lists every round's trained groups."""
-    from promptgs_engine.prompts import PromptBox
-    from promptgs_engine.proposals import Proposal, ProposalSet, merge_rounds
+    from promptgs_engine.proposals import ProposalSet, merge_rounds
 
     def round_of(step, points, trained):
-        props = [Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1) for p in points]
+        props = [proposal_at(p) for p in points]
         return ProposalSet(props, [], {}, {"v": len(points)}, info={"step": step, "trained_as": trained})
 
     first = merge_rounds(None, round_of(150, [(0.0, 0.0, 0.0), (2.0, 0.0, 0.0)], [{"members": [0, 1]}]))
@@ -325,16 +332,13 @@ def test_each_object_is_seeded_once_by_the_first_round_that_finds_it():
     prompt the run was given."""
     from promptgs_engine.prompts import PromptBox
     from promptgs_engine.propose import proposals_to_seed
-    from promptgs_engine.proposals import Proposal, group_boxes
+    from promptgs_engine.proposals import group_boxes
 
-    def proposal(p):
-        return Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1)
-
-    first = [proposal((0.0, 0.0, 0.0)), proposal((1.0, 0.0, 0.0))]
+    first = [proposal_at((0.0, 0.0, 0.0)), proposal_at((1.0, 0.0, 0.0))]
     groups, _ = group_boxes([p.box for p in first], link=2.0)
     assert proposals_to_seed(first, given=[], earlier=[]) == first
-    missed = proposal((0.5, 0.05, 0.0))  # between the two: inside their group's prompt
-    again = proposal((1.02, 0.0, 0.0))  # the second object, proposed again
+    missed = proposal_at((0.5, 0.05, 0.0))  # between the two: inside their group's prompt
+    again = proposal_at((1.02, 0.0, 0.0))  # the second object, proposed again
     assert groups[0].contains(torch.tensor([[0.5, 0.05, 0.0]])).all()
     second = proposals_to_seed([missed, again], given=[], earlier=[p.box for p in first])
     assert second == [missed]
@@ -347,14 +351,10 @@ def test_the_trainers_second_round_seeds_an_object_inside_a_group_prompt_of_the_
     # The rounds as the trainer runs them (TrainingProposer.run), the proposing itself
     # replaced by what each round finds.
     from promptgs_engine import propose as propose_module
-    from promptgs_engine.prompts import PromptBox
-    from promptgs_engine.proposals import Proposal, ProposalSet
+    from promptgs_engine.proposals import ProposalSet
 
-    def proposal(p):
-        return Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1)
-
-    rounds = iter([[proposal((0.0, 0.0, 0.0)), proposal((1.0, 0.0, 0.0))],
-                   [proposal((0.5, 0.05, 0.0)), proposal((1.02, 0.0, 0.0))]])
+    rounds = iter([[proposal_at((0.0, 0.0, 0.0)), proposal_at((1.0, 0.0, 0.0))],
+                   [proposal_at((0.5, 0.05, 0.0)), proposal_at((1.02, 0.0, 0.0))]])
     monkeypatch.setattr(propose_module, "params_renderer", lambda *a, **k: None)
     monkeypatch.setattr(propose_module, "propose_views", lambda draw, cams, points=None: ProposalSet(next(rounds), [], {}, {"v": 1}))
     monkeypatch.setattr(propose_module, "visible_boxes", lambda boxes, cams: list(boxes))
