@@ -28,10 +28,10 @@ from typing import Any
 import torch
 
 from promptgs_engine.cli import main as cli_main
+from promptgs_engine.gaussians import sh_to_rgb
 from promptgs_engine.strategies.default import ResettingDefaultStrategy
 from promptgs_engine.train import Trainer
 
-SH_C0 = 0.28209479177387814
 ID = "lineage_id"  # a per-Gaussian tensor of the strategy state: growth and pruning carry it
 
 
@@ -74,7 +74,7 @@ class Lineage:
                     "position": [round(float(v), 4) for v in means[i]],
                     "opacity": round(float(torch.sigmoid(params["opacities"][i].detach()).flatten()[0]), 4),
                     "scale": round(float(torch.exp(params["scales"][i].detach()).max()), 4),
-                    "colour": [round(float(v), 3) for v in params["sh0"][i, 0].detach() * SH_C0 + 0.5],
+                    "colour": [round(float(v), 3) for v in sh_to_rgb(params["sh0"][i, 0].detach())],
                     "carved": bool(carved[i] > 0) if isinstance(carved, torch.Tensor) else None,
                 }
                 for i in close.tolist()

@@ -27,35 +27,36 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+import numpy as np
 import torch
 
 from promptgs_engine.data import Camera, load_colmap_scene
 from promptgs_engine.evaluation import load_run, render_view
 from promptgs_engine.gaussians import sh_degree_of
+from promptgs_engine.metrics import psnr
+from promptgs_engine.prompts import camera_center
 from promptgs_engine.render import render
 
 REMOVED = (1, 3, 10, 30, 100)
 DESCRIBED = 5
 
 
-def camera_centre(camera: Camera) -> torch.Tensor:
-    w2c = camera.world_to_camera
-    return -w2c[:3, :3].T @ w2c[:3, 3]
-
-
-def psnr(img: torch.Tensor, gt: torch.Tensor) -> float:
-    return float(-10 * torch.log10(((img - gt) ** 2).mean()))
-
-
-def ranked_by_error(params: dict[str, torch.Tensor], camera: Camera, gt: torch.Tensor, cfg) -> torch.Tensor:
-    """Gaussian indices, the one whose opacity adds most to the view's squared error first."""
-    logits = params["opacities"].clone().requires_grad_(True)
-    img, _, _ = render(
+def draw(params: dict[str, torch.Tensor], camera: Camera, cfg, opacity_logits: torch.Tensor | None = None):
+    """The run's render of ``camera`` (with its filter), opacities from ``opacity_logits``
+    where given (to take their gradient); (image [1, H, W, 3], alpha, info)."""
+    logits = params["opacities"] if opacity_logits is None else opacity_logits
+    return render(
         params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(logits),
         torch.cat([params["sh0"], params["shN"]], dim=1), camera.world_to_camera[None], camera.K[None],
         camera.width, camera.height, sh_degree=sh_degree_of(params), backend="cpu",
         eps2d=cfg.effective_screen_filter, rasterize_mode=cfg.rasterize_mode,
     )
+
+
+def ranked_by_error(params: dict[str, torch.Tensor], camera: Camera, gt: torch.Tensor, cfg) -> torch.Tensor:
+    """Gaussian indices, the one whose opacity adds most to the view's squared error first."""
+    logits = params["opacities"].clone().requires_grad_(True)
+    img, _, _ = draw(params, camera, cfg, logits)
     ((img[0].clamp(0, 1) - gt) ** 2).sum().backward()
     return torch.argsort(-(logits.grad * torch.sigmoid(params["opacities"])).flatten())
 
@@ -65,12 +66,7 @@ def seen_by(params: dict[str, torch.Tensor], ids: list[int], cameras: list[Camer
     out: dict[int, list[dict]] = {i: [] for i in ids}
     with torch.no_grad():
         for cam in cameras:
-            _, _, info = render(
-                params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
-                torch.cat([params["sh0"], params["shN"]], dim=1), cam.world_to_camera[None], cam.K[None],
-                cam.width, cam.height, sh_degree=sh_degree_of(params), backend="cpu",
-                eps2d=cfg.effective_screen_filter, rasterize_mode=cfg.rasterize_mode,
-            )
+            _, _, info = draw(params, cam, cfg)
             radii = info["radii"][0]
             for i in ids:
                 if bool((radii[i] > 0).all()):
@@ -100,10 +96,10 @@ def main(argv: list[str] | None = None) -> int:
     train = [c.downscaled(cfg.downscale) for c in scene.train_cameras]
     gt = camera.load_image()
 
-    def draw(p: dict[str, torch.Tensor]) -> torch.Tensor:
+    def image_of(p: dict[str, torch.Tensor]) -> torch.Tensor:
         return render_view(p, camera, backend="cpu", screen_filter=cfg.effective_screen_filter, rasterize_mode=cfg.rasterize_mode)
 
-    full = draw(params)
+    full = image_of(params)
     order = ranked_by_error(params, camera, gt, cfg)
     n = params["means"].shape[0]
     removed = []
@@ -111,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     for k in REMOVED:
         keep = torch.ones(n, dtype=torch.bool)
         keep[order[:k]] = False
-        img = draw({key: v[keep] for key, v in params.items()})
+        img = image_of({key: v[keep] for key, v in params.items()})
         removed.append({"removed": k, "psnr": psnr(img, gt)})
         if k == 1:
             without_top = img
@@ -121,8 +117,8 @@ def main(argv: list[str] | None = None) -> int:
         state = torch.load(ckpt_path, map_location="cpu", weights_only=False).get("strategy_state", {})
     top = order[:DESCRIBED].tolist()
     views = seen_by(params, top, train, cfg)
-    test_centre = camera_centre(camera)
-    train_centres = torch.stack([camera_centre(c) for c in train])
+    test_centre = torch.as_tensor(camera_center(camera), dtype=torch.float32)
+    train_centres = torch.as_tensor(np.stack([camera_center(c) for c in train]), dtype=torch.float32)
     described = []
     for i in top:
         m = params["means"][i]
