@@ -164,19 +164,17 @@ def _gaussian_kernel(sigma: float) -> torch.Tensor:
     return k / k.sum()
 
 
-def _blur_rows(img: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
-    """Convolve the last axis of [..., W] with the odd kernel ``k`` (edges replicated)."""
-    r = (k.numel() - 1) // 2
-    shape = img.shape
-    x = F.pad(img.reshape(1, -1, shape[-1]), (r, r), mode="replicate")[0]
-    return (x.unfold(-1, k.numel(), 1) @ k).reshape(shape)
-
-
 def _blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of [C, H, W] (edges replicated)."""
-    k = _gaussian_kernel(sigma)
-    x = _blur_rows(img, k)
-    return _blur_rows(x.transpose(-1, -2), k).transpose(-1, -2)
+    """Separable Gaussian blur of [C, H, W] (edges replicated): one depthwise convolution
+    along the rows, one along the columns. (A matrix product over ``unfold`` windows did
+    the same sums but ran one small parallel region per row; with the engine's passive
+    OpenMP threads a 480×270 view's four blurs took about 0.5 s, against 20 ms now.)"""
+    k = _gaussian_kernel(sigma).to(img.dtype)
+    r = (k.numel() - 1) // 2
+    c = img.shape[0]
+    x = F.pad(img[None], (r, r, r, r), mode="replicate")
+    x = F.conv2d(x, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(x, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)[0]
 
 
 def _dog(img: torch.Tensor, sigma: float, surround: float) -> torch.Tensor:
