@@ -166,6 +166,22 @@ def test_a_thin_wire_in_front_of_the_ground_is_not_proposed_and_a_drone_next_to_
     assert [p for p in loose.proposals if p.confidence >= TRAIN_MIN_CONFIDENCE] != []
 
 
+@pytest.mark.parametrize("shape", [(6, 40, 57), (3, 5, 4)])  # the second smaller than the widest kernel
+def test_the_detectors_blur_is_the_2d_gaussian_with_edges_replicated(shape):
+    from promptgs_engine.residuals import _blur, _gaussian_kernel
+
+    img = torch.rand(shape, generator=torch.Generator().manual_seed(0))
+    for sigma in (0.7, 4.8):
+        k = _gaussian_kernel(sigma).double()
+        r = (k.numel() - 1) // 2
+        padded = torch.nn.functional.pad(img.double()[None], (r, r, r, r), mode="replicate")[0]
+        windows = padded.unfold(1, k.numel(), 1).unfold(2, k.numel(), 1)  # [C, H, W, K, K]
+        expected = (windows * (k[:, None] * k[None, :])).sum(dim=(-1, -2))
+        got = _blur(img, sigma)
+        assert got.shape == img.shape
+        assert torch.allclose(got.double(), expected, atol=1e-6)
+
+
 def test_a_compact_blob_passes_the_shape_test_and_a_line_does_not():
     from promptgs_engine.residuals import residual_strength
 
