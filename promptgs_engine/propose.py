@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from .data import Camera
 from .errors import PromptError
-from .prompts import PromptBox, check_visible
+from .prompts import PromptBox, check_visible, contains_any
 from .proposals import Proposal, ProposalSet, ProposalSettings, group_boxes, load_proposals, merge_rounds, propose
 from .residuals import ResidualSettings, ViewEvidence, view_evidence
 
@@ -167,8 +167,6 @@ def proposals_to_seed(
     mountain's drone 6, proposed only by the second round of seed 4, got no seed, the
     Gaussians resampling put there faded within 30 steps, twice, and it was missed in
     every test view (docs/results/economy/README.md, "A drone proposed late")."""
-    from .prompts import contains_any
-
     points = torch.tensor([p.point for p in proposals], dtype=torch.float64).reshape(-1, 3)
     held = contains_any([*given, *earlier], points).tolist()
     return [p for p, h in zip(proposals, held) if not h]
@@ -206,8 +204,6 @@ class TrainingProposer:
         """Propose from the current parameters; the prompts to add (the groups whose centre
         no ``existing`` prompt holds). `trained` is then the proposals to seed: those of
         confidence ≥ `TRAIN_MIN_CONFIDENCE` that `proposals_to_seed` keeps."""
-        from .prompts import contains_any
-
         t = self.trainer
         draw = params_renderer(t.params, t.backend, t.screen_filter, t.cfg.rasterize_mode, t.active_sh_degree(step))
         result = propose_views(draw, self.cameras, points=t.scene.points)
