@@ -50,6 +50,7 @@ from .prompts import (
     PromptBox, check_visible, load_prompts, placement_warnings, project_box, prompts_from_json, scene_center_prompt,
 )
 from .strategies.promptgs import LAMBDA_DSSIM, LAMBDA_EDGE, LAMBDA_L1, append_gaussians, carve_prompt
+from .threads import one_thread
 from .views import (
     DEFAULT_RATIO, RELATED_MULTIVIEW, SINGLE, ViewSchedule, entries_with_related_steps, related_views, top_k_views,
     views_cap_from_memory,
@@ -364,6 +365,7 @@ class PromptFocus:
         return step % self.field_every == 0
 
     @torch.no_grad()
+    @one_thread()  # small element-wise work: faster without waking a thread (threads.py)
     def observe(
         self,
         step: int,

@@ -170,7 +170,8 @@ class ProjectCPU(torch.autograd.Function):
                 *ctx.inputs, sh_degree, v, k, width, height, near_plane, far_plane, eps2d, radii[c],
                 _f32(v_means2d[c]), _f32(v_conics[c]), _f32(v_depths[c]), vc, ctx.rest,
             )
-            totals = [g if t is None else t + g for t, g in zip(totals, grads)]
+            # Summed in place, camera by camera: the same sums, without a new tensor each.
+            totals = [g if t is None else t.add_(g) for t, g in zip(totals, grads)]
         v_means, v_quats, v_scales, v_sh, v_rest = (t.to(ctx.dtype) for t in totals)
         if ctx.rest_shape is not None and not ctx.rest.numel():  # no coefficients past the first
             v_rest = torch.zeros(ctx.rest_shape, dtype=ctx.dtype)
