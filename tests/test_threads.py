@@ -7,6 +7,7 @@ import torch
 
 from promptgs_engine.losses import edge_losses
 from promptgs_engine.prompts import PromptBox
+from promptgs_engine.strategies.default import ResettingDefaultStrategy
 from promptgs_engine.strategies.promptgs import PromptGSStrategy
 from promptgs_engine.threads import one_thread
 
@@ -67,12 +68,17 @@ def test_a_steps_statistics_run_on_one_thread(two_threads, monkeypatch):
 
 
 @pytest.mark.parametrize("cameras", [1, 2])
-def test_prompt_statistics_on_one_thread_are_the_bits_of_two(two_threads, cameras):
+def test_prompt_statistics_on_one_thread_are_the_bits_of_two(two_threads, monkeypatch, cameras):
     """`PromptGSStrategy._update_state` runs under `one_thread`; its growth statistics,
-    scores, view counts and errors equal those of the same step on two threads."""
+    scores, view counts and errors equal those of the same step on two threads (both
+    strategies' `_update_state` undecorated)."""
     params, info = _step(40_000, cameras)
     results = []
-    for update in (PromptGSStrategy._update_state, PromptGSStrategy._update_state.__wrapped__):
+    for on_two in (False, True):
+        update = PromptGSStrategy._update_state
+        if on_two:  # both strategies' statistics undecorated: two threads split the work
+            monkeypatch.setattr(ResettingDefaultStrategy, "_update_state", ResettingDefaultStrategy._update_state.__wrapped__)
+            update = update.__wrapped__
         s = PromptGSStrategy(refine_start_iter=0, refine_stop_iter=10_000, refine_every=100, reset_every=10_000,
                              prompts=[PromptBox(center=(0.0, 0.0, 0.0), size=(2.0, 2.0, 2.0))])
         state = s.initialize_state(scene_scale=1.0)
