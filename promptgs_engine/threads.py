@@ -27,9 +27,6 @@ import torch
 def one_thread() -> Iterator[None]:
     """Run the block with one intra-op thread, then restore the count the caller had."""
     threads = torch.get_num_threads()
-    if threads == 1:
-        yield
-        return
     torch.set_num_threads(1)
     try:
         yield

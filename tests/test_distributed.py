@@ -30,6 +30,7 @@ from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.distributed import Dist, DistributedError
 from promptgs_engine.errors import PromptGSError
 from promptgs_engine.strategies import DefaultSchedule
+from promptgs_engine.threads import one_thread
 from promptgs_engine.train import Trainer
 
 REPO = Path(__file__).resolve().parents[1]
@@ -47,14 +48,10 @@ def _config(toy: Path, out: Path, **kw) -> TrainConfig:
 
 def _train_in_process(cfg: TrainConfig, dist: Dist | None = None) -> Trainer:
     """Train ``cfg`` here with one thread (like one rank) and return the trainer."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with one_thread():
         trainer = Trainer(cfg, scene=load_colmap_scene(cfg.dataset), quiet=True, dist=dist)
         trainer.out.mkdir(parents=True, exist_ok=True)
         trainer.train()
-    finally:
-        torch.set_num_threads(threads)
     return trainer
 
 
