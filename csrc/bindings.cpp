@@ -220,21 +220,33 @@ promptgs::ProjectInputs make_project_inputs(const Tensor& means, const Tensor& q
     return in;
 }
 
+// One Camera per row of viewmats [C,4,4] and Ks [C,3,3].
+std::vector<promptgs::Camera> make_cameras(const Tensor& viewmats, const Tensor& Ks, int64_t width, int64_t height,
+                                           double near_plane, double far_plane, double eps2d) {
+    TORCH_CHECK(viewmats.dim() == 3 && viewmats.size(0) > 0, "viewmats must be [C, 4, 4], got ", viewmats.sizes());
+    TORCH_CHECK(Ks.dim() == 3 && Ks.size(0) == viewmats.size(0), "Ks must be [C, 3, 3] with viewmats' C, got ",
+                Ks.sizes());
+    std::vector<promptgs::Camera> cams;
+    for (int64_t c = 0; c < viewmats.size(0); ++c)
+        cams.push_back(make_camera(viewmats[c], Ks[c], width, height, near_plane, far_plane, eps2d));
+    return cams;
+}
+
 std::vector<Tensor> project_fwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh,
-                                int64_t sh_degree, Tensor viewmat, Tensor K, int64_t width, int64_t height,
+                                int64_t sh_degree, Tensor viewmats, Tensor Ks, int64_t width, int64_t height,
                                 double near_plane, double far_plane, double eps2d, Tensor sh_rest) {
     promptgs::ProjectInputs in = make_project_inputs(means, quats, scales, opacities, sh, sh_rest, sh_degree);
-    promptgs::Camera cam = make_camera(viewmat, K, width, height, near_plane, far_plane, eps2d);
-    const int64_t N = in.n;
+    const std::vector<promptgs::Camera> cams = make_cameras(viewmats, Ks, width, height, near_plane, far_plane, eps2d);
+    const int64_t N = in.n, C = static_cast<int64_t>(cams.size());
     auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
-    Tensor means2d = torch::empty({N, 2}, f32);
-    Tensor conics = torch::empty({N, 3}, f32);
-    Tensor depths = torch::empty({N}, f32);
-    Tensor radii = torch::empty({N, 2}, torch::TensorOptions().dtype(torch::kInt32));
-    Tensor colors = in.sh ? torch::empty({N, 3}, f32) : torch::empty({0}, f32);
+    Tensor means2d = torch::empty({C, N, 2}, f32);
+    Tensor conics = torch::empty({C, N, 3}, f32);
+    Tensor depths = torch::empty({C, N}, f32);
+    Tensor radii = torch::empty({C, N, 2}, torch::TensorOptions().dtype(torch::kInt32));
+    Tensor colors = in.sh ? torch::empty({C, N, 3}, f32) : torch::empty({0}, f32);
     {
         pybind11::gil_scoped_release no_gil;
-        promptgs::project_forward(in, cam, means2d.data_ptr<float>(), conics.data_ptr<float>(),
+        promptgs::project_forward(in, cams.data(), C, means2d.data_ptr<float>(), conics.data_ptr<float>(),
                                   depths.data_ptr<float>(), radii.data_ptr<int32_t>(),
                                   in.sh ? colors.data_ptr<float>() : nullptr);
     }
@@ -242,38 +254,44 @@ std::vector<Tensor> project_fwd(Tensor means, Tensor quats, Tensor scales, Tenso
 }
 
 std::vector<Tensor> project_bwd(Tensor means, Tensor quats, Tensor scales, Tensor opacities, Tensor sh,
-                                int64_t sh_degree, Tensor viewmat, Tensor K, int64_t width, int64_t height,
+                                int64_t sh_degree, Tensor viewmats, Tensor Ks, int64_t width, int64_t height,
                                 double near_plane, double far_plane, double eps2d, Tensor radii, Tensor v_means2d,
                                 Tensor v_conics, Tensor v_depths, Tensor v_colors, Tensor sh_rest) {
     promptgs::ProjectInputs in = make_project_inputs(means, quats, scales, opacities, sh, sh_rest, sh_degree);
-    promptgs::Camera cam = make_camera(viewmat, K, width, height, near_plane, far_plane, eps2d);
-    const int64_t N = in.n;
-    check(radii, "radii", torch::kInt32, {N, 2});
-    check(v_means2d, "v_means2d", torch::kFloat32, {N, 2});
-    check(v_conics, "v_conics", torch::kFloat32, {N, 3});
-    check(v_depths, "v_depths", torch::kFloat32, {N});
+    const std::vector<promptgs::Camera> cams = make_cameras(viewmats, Ks, width, height, near_plane, far_plane, eps2d);
+    const int64_t N = in.n, C = static_cast<int64_t>(cams.size());
+    check(radii, "radii", torch::kInt32, {C, N, 2});
+    check(v_means2d, "v_means2d", torch::kFloat32, {C, N, 2});
+    check(v_conics, "v_conics", torch::kFloat32, {C, N, 3});
+    check(v_depths, "v_depths", torch::kFloat32, {C, N});
     const bool has_vc = in.sh && v_colors.numel() > 0;
-    if (has_vc) check(v_colors, "v_colors", torch::kFloat32, {N, 3});
+    if (has_vc) check(v_colors, "v_colors", torch::kFloat32, {C, N, 3});
     auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
-    Tensor v_means = torch::empty({N, 3}, f32);
-    Tensor v_quats = torch::empty({N, 4}, f32);
-    Tensor v_scales = torch::empty({N, 3}, f32);
-    Tensor v_sh = in.sh ? torch::empty({N, in.sh_rest ? 1 : in.sh_k, 3}, f32) : torch::empty({0}, f32);
-    Tensor v_sh_rest = in.sh_rest ? torch::empty({N, in.sh_k - 1, 3}, f32) : torch::empty({0}, f32);
+    // The sums, and (with several cameras) one camera's gradients before they are added.
+    auto grads = [&](int64_t n) {
+        return std::vector<Tensor>{
+            torch::empty({n, 3}, f32), torch::empty({n, 4}, f32), torch::empty({n, 3}, f32),
+            in.sh ? torch::empty({n, in.sh_rest ? 1 : in.sh_k, 3}, f32) : torch::empty({0}, f32),
+            in.sh_rest ? torch::empty({n, in.sh_k - 1, 3}, f32) : torch::empty({0}, f32)};
+    };
+    auto pointers = [&](std::vector<Tensor>& g) {
+        return promptgs::ProjectGrads{g[0].data_ptr<float>(), g[1].data_ptr<float>(), g[2].data_ptr<float>(),
+                                      has_vc ? g[3].data_ptr<float>() : nullptr,
+                                      has_vc && in.sh_rest ? g[4].data_ptr<float>() : nullptr};
+    };
+    std::vector<Tensor> out = grads(N), scratch = grads(C > 1 ? N : 0);
     if (in.sh && !has_vc) {
-        v_sh.zero_();
-        v_sh_rest.zero_();
+        out[3].zero_();
+        out[4].zero_();
     }
     {
         pybind11::gil_scoped_release no_gil;
-        promptgs::project_backward(in, cam, radii.data_ptr<int32_t>(), v_means2d.data_ptr<float>(),
+        promptgs::project_backward(in, cams.data(), C, radii.data_ptr<int32_t>(), v_means2d.data_ptr<float>(),
                                    v_conics.data_ptr<float>(), v_depths.data_ptr<float>(),
-                                   has_vc ? v_colors.data_ptr<float>() : nullptr, v_means.data_ptr<float>(),
-                                   v_quats.data_ptr<float>(), v_scales.data_ptr<float>(),
-                                   has_vc ? v_sh.data_ptr<float>() : nullptr,
-                                   has_vc && in.sh_rest ? v_sh_rest.data_ptr<float>() : nullptr);
+                                   has_vc ? v_colors.data_ptr<float>() : nullptr, pointers(out),
+                                   C > 1 ? pointers(scratch) : promptgs::ProjectGrads{});
     }
-    return {v_means, v_quats, v_scales, v_sh, v_sh_rest};
+    return out;
 }
 
 promptgs::SsimShape ssim_shape(const Tensor& img, const Tensor& ref, const Tensor& window) {
@@ -337,12 +355,14 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           "tile_ids, tile_order, tile_rows, splats, sorted_colors, alphas, last_ids, then dL/dcolors, dL/dalphas, "
           "absgrad) -> [means2d Nx2, conics Nx3, colors NxD, opacities N, absgrad Nx2 or empty].");
     m.def("project_forward", &project_fwd,
-          "EWA projection (+ SH colours) for one camera: (means, quats, scales, opacities, sh or empty, sh_degree, "
-          "viewmat, K, width, height, near, far, eps2d, sh_rest or empty) -> [means2d, conics, depths, radii int32, "
-          "colors or empty]; with sh_rest [N,K-1,3], sh [N,1,3] holds only the first SH coefficient.");
+          "EWA projection (+ SH colours) for C cameras: (means, quats, scales, opacities, sh or empty, sh_degree, "
+          "viewmats Cx4x4, Ks Cx3x3, width, height, near, far, eps2d, sh_rest or empty) -> [means2d CxNx2, "
+          "conics CxNx3, depths CxN, radii CxNx2 int32, colors CxNx3 or empty]; with sh_rest [N,K-1,3], sh [N,1,3] "
+          "holds only the first SH coefficient.");
     m.def("project_backward", &project_bwd,
           "Gradients of project_forward's outputs (its arguments, radii, v_means2d, v_conics, v_depths, v_colors, "
-          "sh_rest) -> [v_means, v_quats, v_scales, v_sh or empty, v_sh_rest or empty].");
+          "sh_rest), summed over the C cameras in camera order -> [v_means, v_quats, v_scales, v_sh or empty, "
+          "v_sh_rest or empty].");
     m.def("stage_times", &stage_times, pybind11::arg("reset") = false, pybind11::arg("cpu") = false,
           "Seconds spent in each stage of the C++ passes since the last reset, {stage: seconds}: wall time, or "
           "with cpu=True the CPU time of the calling thread (resetting clears both).");

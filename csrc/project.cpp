@@ -1,6 +1,7 @@
 // EWA projection and SH colours, forward and backward (see project.h): the threads split the
-// Gaussians into contiguous ranges, and each range runs the vectorised kernels of
-// project_kernels.inc for the CPU's instruction set, kVW Gaussians at a time.
+// Gaussians into contiguous ranges, the same for every camera, and each range runs the
+// vectorised kernels of project_kernels.inc for the CPU's instruction set, kVW Gaussians at
+// a time.
 #include "project.h"
 
 #include <omp.h>
@@ -31,29 +32,52 @@ void for_each_range(int64_t n_total, Fn fn) {
     }
 }
 
+// dst[rows begin..end) += src[the same rows], `width` floats a row.
+inline void add_rows(float* dst, const float* src, int64_t begin, int64_t end, int64_t width) {
+    for (int64_t i = begin * width; i < end * width; ++i) dst[i] += src[i];
+}
+
 }  // namespace
 
-void project_forward(const ProjectInputs& in, const Camera& cam, float* means2d, float* conics, float* depths,
-                     int32_t* radii, float* colors) {
+void project_forward(const ProjectInputs& in, const Camera* cams, int64_t n_cams, float* means2d, float* conics,
+                     float* depths, int32_t* radii, float* colors) {
     StageTimer timer(kStageProjectForward);
-    float campos[3];
-    camera_center(cam, campos);
     const Kernels::ProjectForward fn = kernels().project_forward;
-    for_each_range(in.n, [&](int64_t begin, int64_t end) {
-        fn(in, cam, campos, begin, end, means2d, conics, depths, radii, colors);
+    const int64_t n = in.n;
+    for_each_range(n, [&](int64_t begin, int64_t end) {
+        for (int64_t c = 0; c < n_cams; ++c) {
+            float campos[3];
+            camera_center(cams[c], campos);
+            fn(in, cams[c], campos, begin, end, means2d + 2 * n * c, conics + 3 * n * c, depths + n * c,
+               radii + 2 * n * c, colors ? colors + 3 * n * c : nullptr);
+        }
     });
 }
 
-void project_backward(const ProjectInputs& in, const Camera& cam, const int32_t* radii, const float* v_means2d,
-                      const float* v_conics, const float* v_depths, const float* v_colors, float* v_means,
-                      float* v_quats, float* v_scales, float* v_sh, float* v_sh_rest) {
+void project_backward(const ProjectInputs& in, const Camera* cams, int64_t n_cams, const int32_t* radii,
+                      const float* v_means2d, const float* v_conics, const float* v_depths, const float* v_colors,
+                      const ProjectGrads& out, const ProjectGrads& scratch) {
     StageTimer timer(kStageProjectBackward);
-    float campos[3];
-    camera_center(cam, campos);
     const Kernels::ProjectBackward fn = kernels().project_backward;
-    for_each_range(in.n, [&](int64_t begin, int64_t end) {
-        fn(in, cam, campos, begin, end, radii, v_means2d, v_conics, v_depths, v_colors, v_means, v_quats, v_scales,
-           v_sh, v_sh_rest);
+    const int64_t n = in.n;
+    const int64_t sh_width = 3 * (in.sh_rest ? 1 : in.sh_k), rest_width = in.sh_rest ? 3 * (in.sh_k - 1) : 0;
+    // Each thread takes the same Gaussians for every camera, so a camera's gradients are
+    // added to the sums by the thread that computed both: no barrier between cameras.
+    for_each_range(n, [&](int64_t begin, int64_t end) {
+        for (int64_t c = 0; c < n_cams; ++c) {
+            const ProjectGrads& g = c == 0 ? out : scratch;
+            float campos[3];
+            camera_center(cams[c], campos);
+            fn(in, cams[c], campos, begin, end, radii + 2 * n * c, v_means2d + 2 * n * c, v_conics + 3 * n * c,
+               v_depths ? v_depths + n * c : nullptr, v_colors ? v_colors + 3 * n * c : nullptr, g.means, g.quats,
+               g.scales, g.sh, g.sh_rest);
+            if (c == 0) continue;
+            add_rows(out.means, g.means, begin, end, 3);
+            add_rows(out.quats, g.quats, begin, end, 4);
+            add_rows(out.scales, g.scales, begin, end, 3);
+            if (out.sh) add_rows(out.sh, g.sh, begin, end, sh_width);
+            if (out.sh_rest) add_rows(out.sh_rest, g.sh_rest, begin, end, rest_width);
+        }
     });
 }
 

@@ -1,4 +1,4 @@
-// EWA projection of 3D Gaussians and SH colour evaluation for one camera, forward and
+// EWA projection of 3D Gaussians and SH colour evaluation for C cameras, forward and
 // backward, in plain C++ (parallel over Gaussians with OpenMP).
 //
 // Same conventions as promptgs_engine/render/projection.py and sh.py (which stay the
@@ -33,15 +33,28 @@ struct ProjectInputs {
     int sh_degree;           // 0..3, uses (degree + 1)^2 of the K coefficients
 };
 
-// Outputs: means2d [N,2], conics [N,3], depths [N], radii [N,2]; colors [N,3] when sh is set.
-void project_forward(const ProjectInputs& in, const Camera& cam, float* means2d, float* conics, float* depths,
-                     int32_t* radii, float* colors);
+// Gradients of the projection, one array per parameter (see project_backward).
+struct ProjectGrads {
+    float* means;    // [N, 3]
+    float* quats;    // [N, 4]
+    float* scales;   // [N, 3]
+    float* sh;       // [N, K, 3] ([N, 1, 3] with sh_rest), or nullptr: no colour gradients
+    float* sh_rest;  // [N, K - 1, 3] or nullptr
+};
 
-// Gradients of the projection outputs (v_colors may be nullptr) to means [N,3], quats [N,4],
-// scales [N,3] and, when sh is set, the SH coefficients [N,K,3] (with sh_rest: v_sh [N,1,3]
-// and v_sh_rest [N,K-1,3]). Outputs are overwritten; culled Gaussians get zeros.
-void project_backward(const ProjectInputs& in, const Camera& cam, const int32_t* radii, const float* v_means2d,
-                      const float* v_conics, const float* v_depths, const float* v_colors, float* v_means,
-                      float* v_quats, float* v_scales, float* v_sh, float* v_sh_rest);
+// For cams[0..n_cams): outputs of camera c at c·N rows: means2d [C,N,2], conics [C,N,3],
+// depths [C,N], radii [C,N,2]; colors [C,N,3] when sh is set.
+void project_forward(const ProjectInputs& in, const Camera* cams, int64_t n_cams, float* means2d, float* conics,
+                     float* depths, int32_t* radii, float* colors);
+
+// Gradients of the projection outputs of cams[0..n_cams) (inputs laid out as
+// project_forward's outputs; v_colors may be nullptr) to means, quats, scales and, when
+// out.sh is set, the SH coefficients, summed over the cameras in camera order (camera 0's,
+// then each next camera's added). Outputs are overwritten; culled Gaussians add zeros.
+// With more than one camera, `scratch` holds one camera's gradients (the same layout as
+// `out`) before they are added.
+void project_backward(const ProjectInputs& in, const Camera* cams, int64_t n_cams, const int32_t* radii,
+                      const float* v_means2d, const float* v_conics, const float* v_depths, const float* v_colors,
+                      const ProjectGrads& out, const ProjectGrads& scratch);
 
 }  // namespace promptgs

@@ -510,3 +510,28 @@ def test_backend_selection_errors():
             resolve_backend("cuda", torch.device("cpu"))
     with pytest.raises(ValueError, match="render_mode"):
         render(*[torch.zeros(1, k) for k in (3, 4, 3)], torch.zeros(1), torch.zeros(1, 3), *cameras(1, torch.float32), W, H, render_mode="D")
+
+
+@pytest.mark.parametrize("sh_degree", [None, 2])
+def test_several_cameras_sum_the_projection_gradients_of_each_in_camera_order(sh_degree):
+    """One render of three cameras gives the projection's gradients of three one-camera
+    renders, summed camera by camera, bit for bit (enough Gaussians for every thread to
+    hold a range of them, so each thread's sum of its own range is checked)."""
+    n, views = 3000, cameras(3, dtype=torch.float32)
+    geometry = [t.float() for t in make_scene(n, seed=11, spread=1.5)]
+    colors = (torch.randn(n, 9, 3, generator=torch.Generator().manual_seed(6)) * 0.3 if sh_degree is not None
+              else torch.rand(n, 3, generator=torch.Generator().manual_seed(6)))
+    weights = torch.rand(3, H, W, 3, generator=torch.Generator().manual_seed(8))
+
+    def grads(cams: list[int]) -> list[torch.Tensor]:
+        leaves = [t.clone().requires_grad_(True) for t in (*geometry, colors)]
+        img, alpha, _ = render(*leaves, views[0][cams], views[1][cams], W, H, sh_degree=sh_degree, backend="cpu")
+        ((img * weights[cams]).sum() + alpha.sum()).backward()
+        return [leaves[i].grad for i in (0, 1, 2)] + ([leaves[4].grad] if sh_degree is not None else [])
+
+    together = grads([0, 1, 2])
+    apart = [grads([c]) for c in range(3)]
+    summed = [a.clone().add_(b).add_(c) for a, b, c in zip(*apart)]
+    for name, t, s in zip(["means", "quats", "scales", "sh"], together, summed):
+        assert t.abs().max() > 0, f"{name}: no gradient, the scene tests nothing"
+        assert torch.equal(t, s), f"{name}: max difference {(t - s).abs().max().item():.3g}"

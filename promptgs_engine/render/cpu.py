@@ -143,13 +143,11 @@ class ProjectCPU(torch.autograd.Function):
     ):
         _C = _ext()
         inputs = (_f32(means), _f32(quats), _f32(scales), _f32(opacities), _f32(sh) if sh is not None else torch.empty(0))
-        cams = [(_f32(viewmats[c]), _f32(Ks[c])) for c in range(viewmats.shape[0])]
+        cams = (_f32(viewmats), _f32(Ks))
         rest = _f32(sh_rest) if sh is not None and sh_rest is not None and sh_rest.numel() else torch.empty(0)
-        outs = [
-            _C.project_forward(*inputs, sh_degree, v, k, width, height, near_plane, far_plane, eps2d, rest)
-            for v, k in cams
-        ]
-        means2d, conics, depths, radii, colors = (_stack([o[j] for o in outs]) for j in range(5))
+        means2d, conics, depths, radii, colors = _C.project_forward(
+            *inputs, sh_degree, *cams, width, height, near_plane, far_plane, eps2d, rest
+        )
         ctx.inputs, ctx.cams, ctx.has_sh, ctx.rest = inputs, cams, sh is not None, rest
         ctx.rest_shape = None if sh_rest is None else sh_rest.shape
         ctx.args = (sh_degree, width, height, near_plane, far_plane, eps2d)
@@ -163,15 +161,12 @@ class ProjectCPU(torch.autograd.Function):
         (radii,) = ctx.saved_tensors
         _C = _ext()
         sh_degree, width, height, near_plane, far_plane, eps2d = ctx.args
-        totals: list[Tensor | None] = [None] * 5
-        for c, (v, k) in enumerate(ctx.cams):
-            vc = _f32(v_colors[c]) if ctx.has_sh and v_colors is not None and v_colors.numel() else torch.empty(0)
-            grads = _C.project_backward(
-                *ctx.inputs, sh_degree, v, k, width, height, near_plane, far_plane, eps2d, radii[c],
-                _f32(v_means2d[c]), _f32(v_conics[c]), _f32(v_depths[c]), vc, ctx.rest,
-            )
-            # Summed in place, camera by camera: the same sums, without a new tensor each.
-            totals = [g if t is None else t.add_(g) for t, g in zip(totals, grads)]
+        vc = _f32(v_colors) if ctx.has_sh and v_colors is not None and v_colors.numel() else torch.empty(0)
+        # The C++ pass sums the cameras' gradients, camera by camera.
+        totals = _C.project_backward(
+            *ctx.inputs, sh_degree, *ctx.cams, width, height, near_plane, far_plane, eps2d, radii,
+            _f32(v_means2d), _f32(v_conics), _f32(v_depths), vc, ctx.rest,
+        )
         v_means, v_quats, v_scales, v_sh, v_rest = (t.to(ctx.dtype) for t in totals)
         if ctx.rest_shape is not None and not ctx.rest.numel():  # no coefficients past the first
             v_rest = torch.zeros(ctx.rest_shape, dtype=ctx.dtype)
