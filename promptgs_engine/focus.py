@@ -43,9 +43,10 @@ import torch
 
 from .config import BASELINE_SCREEN_FILTER
 from .data import Camera
+from .data.images import ImageCache
 from .errorfield import ErrorField
 from .errors import PromptError
-from .losses import edge_losses
+from .losses import edge_losses_to, sobel_magnitude
 from .prompts import (
     PromptBox, check_visible, load_prompts, placement_warnings, project_box, prompts_from_json, scene_center_prompt,
 )
@@ -130,6 +131,30 @@ class TrainView:
     crop: bool = False  # a crop around a prompt (related-view step), not the whole image
     statistics: bool = False  # a statistics step: the only kind that votes for growth outside the prompts
     screen_filter: float | None = None  # px²; None: the run's (full-size renders)
+    window: tuple[int, int, int, int] | None = None  # a crop's (x0, y0, width, height) in the source view
+
+
+# Bytes of ground-truth edge maps kept between steps (`ReferenceEdges`).
+REFERENCE_EDGE_BYTES = 256 << 20
+
+
+class ReferenceEdges(ImageCache):
+    """Sobel magnitudes (`losses.sobel_magnitude`) of the views' ground truth, kept between
+    steps: the per-view loss compares a render's edges with its reference's, and the
+    reference of a view (or of a crop of it) does not change. Least recently used first
+    out, bounded in bytes."""
+
+    def __init__(self, max_bytes: int = REFERENCE_EDGE_BYTES) -> None:
+        super().__init__(max_bytes)
+
+    def of(self, view: TrainView) -> torch.Tensor:
+        """[H, W, 3] edge magnitudes of ``view.gt``, computed on first use."""
+        key = (view.source, view.camera.width, view.camera.height, view.window, str(view.gt.device))
+        edges = self._held(key)
+        if edges is None:
+            edges = sobel_magnitude(view.gt[None])[0]
+            self._hold(key, edges)
+        return edges
 
 
 def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Camera:
@@ -213,6 +238,7 @@ class PromptFocus:
         self.related_k = related_k
         self.field_every = field_every  # the field moves slowly; back-projecting every step costs ~10% of a step
         self.field = ErrorField.from_extent(trainer.scene.extent, resolution=128)
+        self.reference_edges = ReferenceEdges()
         self.auto_prompts = int(cfg.auto_prompts or 0)
         self.auto_prompt_step = None
         sched = trainer.schedule
@@ -333,7 +359,7 @@ class PromptFocus:
             cx0 = min(max((x0 + x1) // 2 - cw // 2, 0), cam.width - cw)
             cy0 = min(max((y0 + y1) // 2 - ch // 2, 0), cam.height - ch)
             gt = cam.load_image(window=(cx0, cy0, cw, ch), device=self.trainer.device)
-            out.append(TrainView(crop_camera(cam, cx0, cy0, cw, ch), gt, v, crop=True))
+            out.append(TrainView(crop_camera(cam, cx0, cy0, cw, ch), gt, v, crop=True, window=(cx0, cy0, cw, ch)))
         # A batch renders at one size: keep the views whose crop matches the first.
         size = (out[0].camera.width, out[0].camera.height)
         return [t for t in out if (t.camera.width, t.camera.height) == size]
@@ -389,10 +415,10 @@ class PromptFocus:
         # Below full resolution (progressive schedule); a crop is at full resolution.
         info["downscale"] = 1.0 if info["crop_step"] else self.full_cameras[views[0].source].width / views[0].camera.width
         if self.trainer.strategy.takes_statistics(step, info):  # the per-view losses weigh the scores
-            gts = torch.stack([v.gt for v in views]).to(rendered.device)
+            ref_edges = torch.stack([self.reference_edges.of(v) for v in views]).to(rendered.device)
             info["view_loss"] = (
                 LAMBDA_L1 * l1_map.mean(dim=(1, 2)) + LAMBDA_DSSIM * dssim_map.mean(dim=(1, 2))
-                + LAMBDA_EDGE * edge_losses(rendered, gts)
+                + LAMBDA_EDGE * edge_losses_to(rendered, ref_edges)
             )
         if not self.feeds_field(step):
             return

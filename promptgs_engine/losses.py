@@ -198,7 +198,12 @@ def edge_loss(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 def edge_losses(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     """`edge_loss` of each image of a batch, [B], in one pass."""
-    return (sobel_magnitude(img) - sobel_magnitude(ref)).abs().mean(dim=(1, 2, 3))
+    return edge_losses_to(img, sobel_magnitude(ref))
+
+
+def edge_losses_to(img: torch.Tensor, ref_edges: torch.Tensor) -> torch.Tensor:
+    """`edge_losses` against references whose `sobel_magnitude` is already known, [B]."""
+    return (sobel_magnitude(img) - ref_edges).abs().mean(dim=(1, 2, 3))
 
 
 def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2) -> torch.Tensor:

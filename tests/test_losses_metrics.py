@@ -1,4 +1,5 @@
 import math
+from types import SimpleNamespace
 
 import torch
 
@@ -118,3 +119,23 @@ def test_fused_photometric_loss_equals_the_torch_expression_bit_for_bit():
     x = img.clone().requires_grad_(True)
     _, l1_map, dssim_map = losses.photometric_maps(x, ref)
     assert not l1_map.requires_grad and not dssim_map.requires_grad
+
+
+def test_reference_edges_are_kept_per_view_and_per_crop_window():
+    """The per-view loss's ground-truth edges, kept between steps, are those `edge_losses`
+    computes; two crops of one view at the same size but different windows each get
+    their own, and a new reference is computed, not the old one returned."""
+    from promptgs_engine.focus import ReferenceEdges, TrainView
+    from promptgs_engine.losses import edge_losses, edge_losses_to
+
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(40, 50, 3, generator=g)
+    camera = SimpleNamespace(width=20, height=16)
+    crops = [TrainView(camera, image[y:y + 16, x:x + 20], source=3, crop=True, window=(x, y, 20, 16))
+             for x, y in ((0, 0), (25, 20))]
+    cache = ReferenceEdges()
+    render = torch.rand(2, 16, 20, 3, generator=g)
+    for _ in range(2):  # computed, then kept
+        kept = torch.stack([cache.of(v) for v in crops])
+        assert torch.equal(edge_losses_to(render, kept), edge_losses(render, torch.stack([v.gt for v in crops])))
+    assert len(cache) == 2
