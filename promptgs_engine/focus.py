@@ -43,7 +43,7 @@ import torch
 
 from .config import BASELINE_SCREEN_FILTER
 from .data import Camera
-from .data.images import ImageCache
+from .data.images import BoundedCache
 from .errorfield import ErrorField
 from .errors import PromptError
 from .losses import edge_losses_to, sobel_magnitude
@@ -138,7 +138,7 @@ class TrainView:
 REFERENCE_EDGE_BYTES = 256 << 20
 
 
-class ReferenceEdges(ImageCache):
+class ReferenceEdges(BoundedCache):
     """Sobel magnitudes (`losses.sobel_magnitude`) of the views' ground truth, kept between
     steps: the per-view loss compares a render's edges with its reference's, and the
     reference of a view (or of a crop of it) does not change. Least recently used first

@@ -14,6 +14,7 @@ from __future__ import annotations
 import threading
 from collections import OrderedDict
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -62,16 +63,13 @@ def read_image_uint8(path: Path, downscale: int = 1) -> np.ndarray:
         raise DatasetError(f"{path}: unreadable image file ({e})") from None
 
 
-class ImageCache:
-    """Least-recently-used cache of decoded images (uint8), bounded in bytes.
-
-    Keys are (path, downscale). Thread-safe. Holding uint8 rather than float32 keeps
-    four times as many images for the same memory.
-    """
+class BoundedCache:
+    """Least-recently-used cache of items that have ``nbytes`` (arrays, tensors), bounded in
+    bytes. Thread-safe. Subclasses say what the keys are and how a missing item is made."""
 
     def __init__(self, max_bytes: int = DEFAULT_CACHE_BYTES) -> None:
         self.max_bytes = int(max_bytes)
-        self._items: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._items: OrderedDict[tuple, Any] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
 
@@ -93,16 +91,6 @@ class ImageCache:
             self.max_bytes = int(max_bytes)
             self._evict()
 
-    def get(self, path: Path, downscale: int) -> np.ndarray:
-        """The decoded image, from the cache or from disk (then cached if it fits)."""
-        key = (str(path), int(downscale))
-        arr = self._held(key)
-        if arr is None:
-            arr = read_image_uint8(path, downscale)
-            arr.setflags(write=False)
-            self._hold(key, arr)
-        return arr
-
     def _held(self, key: tuple):
         """The item under ``key``, now the most recently used, or None."""
         with self._lock:
@@ -123,6 +111,24 @@ class ImageCache:
         while self._bytes > self.max_bytes and self._items:
             _, old = self._items.popitem(last=False)
             self._bytes -= old.nbytes
+
+
+class ImageCache(BoundedCache):
+    """Least-recently-used cache of decoded images (uint8), bounded in bytes.
+
+    Keys are (path, downscale). Thread-safe. Holding uint8 rather than float32 keeps
+    four times as many images for the same memory.
+    """
+
+    def get(self, path: Path, downscale: int) -> np.ndarray:
+        """The decoded image, from the cache or from disk (then cached if it fits)."""
+        key = (str(path), int(downscale))
+        arr = self._held(key)
+        if arr is None:
+            arr = read_image_uint8(path, downscale)
+            arr.setflags(write=False)
+            self._hold(key, arr)
+        return arr
 
 
 IMAGE_CACHE = ImageCache()
