@@ -8,7 +8,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 from mathutils import Vector
 
-from . import colmap, display, importer, plyio, prompts, proposals, reconstruct, training
+from . import colmap, display, importer, plyio, prompts, proposals, reconstruct, results, training
 from .props import prefs
 from .trainer import find_python, probe
 
@@ -236,7 +236,7 @@ class PROMPTGS_OT_load_result(bpy.types.Operator, ImportHelper):
 
     def execute(self, context):
         try:
-            obj = training.load_result(context, Path(bpy.path.abspath(self.filepath)))
+            obj = results.load_result(context, Path(bpy.path.abspath(self.filepath)))
         except plyio.PlyError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

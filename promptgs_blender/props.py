@@ -4,6 +4,8 @@ import bpy
 from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
                        StringProperty)
 
+from . import results
+
 ADDON_ID = __package__
 
 COLOR_ATTRIBUTES = [
@@ -54,24 +56,11 @@ def _apply_preset(self, context):
 
 
 def _recolor(self, context):
-    from . import display
-    obj = bpy.data.objects.get("PromptGS Gaussians")
-    if display.is_points_object(obj):
-        display.color_by(obj, context.scene.promptgs.color_by)
+    results.recolor(context)
 
 
 def _restyle(self, context):
-    from . import display
-    from . import training
-    settings = context.scene.promptgs
-    obj = bpy.data.objects.get(training.GAUSSIANS)
-    if display.is_points_object(obj):
-        display.set_style(obj, radius=settings.point_radius,
-                          spheres=display.use_spheres(settings.display_style, display.point_count(obj)))
-    obj = bpy.data.objects.get(training.LOSS_FIELD)
-    if display.is_points_object(obj):
-        display.set_style(obj, radius=training.field_radius(obj, settings), min_value=settings.field_cutoff,
-                          spheres=display.use_spheres(settings.display_style, display.point_count(obj)))
+    results.restyle(context)
 
 
 class PromptGSSettings(bpy.types.PropertyGroup):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import prompts, proposals, training
+from . import prompts, proposals, results, training
 
 
 def _duration(seconds: float) -> str:
@@ -174,7 +174,7 @@ class PROMPTGS_PT_display(PromptGSPanel, bpy.types.Panel):
         layout = self.layout
         settings = context.scene.promptgs
         layout.prop(settings, "color_by")
-        obj = bpy.data.objects.get(training.GAUSSIANS)
+        obj = bpy.data.objects.get(results.GAUSSIANS)
         if obj is not None and obj.get("promptgs_color_note"):
             layout.label(text=obj["promptgs_color_note"], icon="INFO")
         layout.prop(settings, "display_style")

@@ -441,7 +441,7 @@ def million_points_update():
             "color": rng.uniform(size=(n, 3)).astype(np.float32),
             "score": rng.uniform(size=n).astype(np.float32), "error": rng.uniform(size=n).astype(np.float32)}
     start = time.time()
-    addon("training").show_gaussians(bpy.context, data)
+    addon("results").show_gaussians(bpy.context, data)
     seconds = time.time() - start
     assert display.point_count(obj) == n
     start = time.time()
@@ -453,7 +453,7 @@ def million_points_update():
     assert draw_seconds < 5.0, f"evaluating the display of 1M points took {draw_seconds:.1f} s (spheres?)"
     # points are drawn as plain points now; a small set goes back to spheres
     small = {k: v[:1000] for k, v in data.items()}
-    addon("training").show_gaussians(bpy.context, small)
+    addon("results").show_gaussians(bpy.context, small)
     return {"update_seconds_1M": round(seconds, 2), "evaluate_seconds_1M": round(draw_seconds, 2)}
 
 
