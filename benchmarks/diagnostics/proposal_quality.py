@@ -14,7 +14,7 @@ For proposal files (``promptgs propose RUN`` output, or the ``proposals.json`` t
 * **localisation**: distance from a correct proposal's triangulated point to the object's
   centre (metres and in object radii), and the boxes' largest edge in object radii.
 
-    python benchmarks/proposal_quality.py runs/x/proposals.json [more files] --out DIR [--labels A B]
+    python benchmarks/diagnostics/proposal_quality.py runs/x/proposals.json [more files] --out DIR [--labels A B]
 
 Writes ``DIR/proposal_quality.json`` and ``DIR/proposal_quality.png`` (precision and
 recall against the confidence threshold per file; a top view of the objects and the

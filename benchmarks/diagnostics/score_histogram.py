@@ -7,9 +7,9 @@ PromptGS strategy does during training (`strategies.promptgs.score_terms`, weigh
 the view's loss P^i of Eq. 3). The histogram is of the mean score per view that saw the
 Gaussian, over all Gaussians and over those inside the prompt boxes, one curve per run.
 
-    python benchmarks/score_histogram.py RUN_3DGS RUN_PROMPTGS_BEFORE RUN_PROMPTGS_AFTER \\
+    python benchmarks/diagnostics/score_histogram.py RUN_3DGS RUN_PROMPTGS_BEFORE RUN_PROMPTGS_AFTER \\
         --labels 3DGS "PromptGS (threshold)" "PromptGS (score quota)" \\
-        --prompts DATASET/prompts_1.json --out docs/results/score_histogram
+        --prompts DATASET/prompts_1.json --out runs/score_histogram
 
 Writes ``score_histogram.json`` (per run: counts, quantiles, Tukey fence, the share of
 Gaussians above 3DGS's fence) and ``score_histogram.png`` into ``--out``.

@@ -6,8 +6,8 @@ the configuration) and records, per step, the loss's float bits and hashes of th
 and opacities. Runs of one seed should agree to the last bit for a given thread count
 (the C++ kernels fix their summation order); a run that parts shows where.
 
-    python benchmarks/repeat_trace.py --toy --runs 8 --threads 2 --out runs/repeat
-    python benchmarks/repeat_trace.py ../shared/data/tumbler --images images_4 --steps 300 --runs 6
+    python benchmarks/diagnostics/repeat_trace.py --toy --runs 8 --threads 2 --out runs/repeat
+    python benchmarks/diagnostics/repeat_trace.py ../shared/data/tumbler --images images_4 --steps 300 --runs 6
 
 Writes ``repeat_trace.json`` (per run: the final loss bits, Gaussian count, and the first
 step that differs from run 0, if any) into ``--out`` and prints one line per run.
@@ -23,7 +23,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def tensor_hash(t) -> str:

@@ -10,8 +10,8 @@ training camera, the training views that see it (radius and depth there, and whe
 centre projects), and, from the run's checkpoint, the step it was born at (growth,
 resampling or the start) and whether resampling made it.
 
-    python benchmarks/view_culprits.py runs/nov29/sparse/runs/sparse_promptgs-propose_none_i1500_s2 \\
-        --view 0024.png --out docs/results/economy/floater_nov29
+    python benchmarks/diagnostics/view_culprits.py runs/sparse/runs/sparse_promptgs-propose_none_i1500_s2 \\
+        --view 0024.png --out runs/view_culprits
 
 Writes ``view_culprits.json`` and ``view_culprits.png`` (ground truth, the run's render,
 the render without the top Gaussian) into ``--out``.

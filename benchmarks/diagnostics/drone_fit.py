@@ -16,8 +16,8 @@ sampling noise: the mean |difference| between the two renders over the drones' p
 and over all pixels of every view, and the recall the other render gets on the test views
 as if a model had drawn it (the ceiling that the ground truth's noise leaves).
 
-    python benchmarks/drone_fit.py runs/sparse/runs/sparse_3dgs_none_i1500_s0 \\
-        runs/sparse/runs/sparse_promptgs-1_none_i1500_s0 --out docs/results/economy/sparse_recall_nov27
+    python benchmarks/diagnostics/drone_fit.py runs/sparse/runs/sparse_3dgs_none_i1500_s0 \\
+        runs/sparse/runs/sparse_promptgs-1_none_i1500_s0 --out runs/drone_fit
 
 Each training view is also marked ``cropped`` when it is one of the views whose crops
 the first run trained for a box drawn in its job (the box's `views.related_views`, as
