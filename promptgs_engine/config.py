@@ -20,9 +20,8 @@ PROMPTGS_SCREEN_FILTER = 0.1
 # An antialiased filter scales each Gaussian's opacity so the filter keeps its screen-space
 # energy (render.projection.filter_compensation): an object smaller than a pixel then
 # covers its pixel in proportion to its projected area from every distance and at every
-# resolution, as in the ground truth. Off by default: over the benchmark grid it moved
-# recall by +0.03 (one box) and -0.04 (a box per group) and cost 0.4 dB of whole-image
-# PSNR (docs/promptgs.md, "Antialiased").
+# resolution, as in the ground truth. Off by default: over the benchmark grid it did not
+# raise recall and cost whole-image PSNR (docs/promptgs.md, "Antialiased").
 
 
 @dataclass
