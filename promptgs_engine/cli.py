@@ -132,7 +132,8 @@ def train_config_from_args(args: argparse.Namespace):
 def cmd_train(args: argparse.Namespace) -> int:
     from . import distributed
     from .events import EventWriter
-    from .train import resolve_backend, run_training
+    from .render import resolve_backend
+    from .run import run_training
 
     cfg = train_config_from_args(args)
     nproc = args.nproc
@@ -232,6 +233,32 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_propose(sub) -> None:
+    from .propose import PROPOSALS_FILE
+
+    p = sub.add_parser("propose", help="propose prompt boxes where the run misses small objects that several views show")
+    p.add_argument("run", type=Path, help="a run folder (its point_cloud.ply, or --snapshot)")
+    p.add_argument("--out", type=Path, help=f"proposal file to write (default RUN/{PROPOSALS_FILE})")
+    p.add_argument("--snapshot", type=Path, help="propose from this snapshot .npz of a run still training (DC colour only)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_propose)
+
+
+def cmd_propose(args: argparse.Namespace) -> int:
+    from .propose import propose_run
+
+    result, path = propose_run(args.run, args.out, args.snapshot, quiet=args.quiet)
+    reasons: dict[str, int] = {}
+    for r in result.rejected:
+        reasons[r.reason] = reasons.get(r.reason, 0) + 1
+    print(f"{len(result.proposals)} proposals, rejected {reasons or 'none'}, "
+          f"{sum(len(v) for v in result.unmatched.values())} unmatched strong candidates; wrote {path}")
+    for i, p in enumerate(result.proposals):
+        print(f"  {i}: confidence {p.confidence:.2f}, centre {[round(v, 3) for v in p.box.center]}, "
+              f"seen by {p.n_seeing} views, supported by {p.n_supporting}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="promptgs", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"promptgs {__version__}")
@@ -246,7 +273,6 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench.grid import add_parser as add_bench
     from .bench.report import add_parser as add_report
     from .bench.stability import add_parser as add_stability
-    from .propose import add_parser as add_propose
     from .synthetic.cli import add_parser as add_dataset
 
     add_demo(sub)
@@ -254,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench(sub)
     add_report(sub)
     add_stability(sub)
-    add_propose(sub)
+    _add_propose(sub)
     return parser
 
 
