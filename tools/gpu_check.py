@@ -250,7 +250,8 @@ class Check:
             if a.torch_index:
                 torch_cmd += ["--extra-index-url", a.torch_index]
             steps += [
-                Step("install-venv", "a fresh virtual environment", [a.python, "-m", "venv", str(a.venv.resolve())], 120,
+                Step("install-venv", "a fresh virtual environment",
+                     [a.python, "-m", "venv", *(["--clear"] if a.fresh_venv else []), str(a.venv.resolve())], 120,
                      skip=lambda: "reused (it exists; --fresh-venv makes a new one)" if Path(self.python).exists() and not a.fresh_venv else None),
                 Step("install-torch", "README command 1: torch (a CUDA build from the registry), setuptools, and ninja", torch_cmd, 360,
                      needs=("install-venv",)),
@@ -707,7 +708,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--skip-install", action="store_true", help="check the current Python (--python) instead of installing a venv")
     ap.add_argument("--python", default=sys.executable, help="the Python to check with --skip-install, or to make the venv with (default: this one)")
     ap.add_argument("--venv", type=Path, default=REPO / ".gpu-venv", help="the virtual environment to install into (default .gpu-venv)")
-    ap.add_argument("--fresh-venv", action="store_true", help="make the venv anew even when it exists")
+    ap.add_argument("--fresh-venv", action="store_true", help="make the venv anew even when it exists (gsplat's compiled extension in it goes too)")
     ap.add_argument("--torch", default="torch==2.13.0", help="what pip installs for torch (default torch==2.13.0, the README's)")
     ap.add_argument("--torch-index", help="an extra package index for torch, e.g. https://download.pytorch.org/whl/cu126 (with --torch torch==2.13.0+cu126)")
     ap.add_argument("--budget", type=int, default=540, help="seconds for the whole check; no step starts past it (default 540)")
