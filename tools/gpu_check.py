@@ -649,7 +649,7 @@ def helper_compare_runs(a: Path, b: Path, out: Path) -> int:
     """Two runs' Gaussians, equal up to float rounding (gsplat's atomics): at most 0.1% of
     the entries more than 1e-4 apart and none more than 1e-2, the rule of
     tests/test_distributed.py's NCCL test; a wiring error moves most entries."""
-    from promptgs_engine.evaluation import load_run
+    from promptgs_engine.run_folder import load_run
 
     (_, pa), (_, pb) = load_run(a), load_run(b)
     keys: dict = {}

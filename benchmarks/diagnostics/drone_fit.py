@@ -71,7 +71,8 @@ import torch
 from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.data.images import read_image_uint8
-from promptgs_engine.evaluation import find_mask, load_run, read_mask, render_view
+from promptgs_engine.evaluation import find_mask, read_mask, render_view
+from promptgs_engine.run_folder import load_run
 from promptgs_engine.focus import RELATED_VIEWS, load_prompt_setting
 from promptgs_engine.metrics import object_recall, resize_mask, visible_objects
 from promptgs_engine.views import related_views
@@ -88,7 +89,7 @@ DRONE_GAUSSIANS_WITHIN = 0.5  # a drone's Gaussians: this close to its centre (s
 DISTANCE_BANDS = (0.0, 36.0, 42.0, 48.0, 1000.0)
 ELEVATION_BANDS = (-90.0, 18.0, 90.0)
 
-Run = tuple[TrainConfig, torch.nn.ParameterDict]  # a run's settings and Gaussians (`evaluation.load_run`)
+Run = tuple[TrainConfig, torch.nn.ParameterDict]  # a run's settings and Gaussians (`run_folder.load_run`)
 
 
 def cropped_views(cfg: TrainConfig, scene) -> set[str]:

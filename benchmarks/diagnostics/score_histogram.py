@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from promptgs_engine.data import load_colmap_scene
-from promptgs_engine.evaluation import load_run
+from promptgs_engine.run_folder import load_run
 from promptgs_engine.focus import load_prompt_setting
 from promptgs_engine.gaussians import sh_degree_of
 from promptgs_engine.losses import edge_loss, ssim_map

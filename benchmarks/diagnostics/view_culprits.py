@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from promptgs_engine.data import Camera, load_colmap_scene
-from promptgs_engine.evaluation import load_run, render_view
+from promptgs_engine.evaluation import render_view
+from promptgs_engine.run_folder import load_run
 from promptgs_engine.gaussians import sh_degree_of
 from promptgs_engine.metrics import psnr
 from promptgs_engine.prompts import camera_center
