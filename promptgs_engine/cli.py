@@ -1,4 +1,4 @@
-"""The promptgs command line: train, eval, render, propose, sfm, demo, dataset, bench, report, stability.
+"""The promptgs command line: train, eval, render, export, propose, sfm, demo, dataset, bench, report, stability.
 
 Bad input ends with a one-line ``promptgs: error: …`` on stderr and exit code 2.
 """
@@ -65,6 +65,8 @@ def _add_train(sub) -> None:
         help="at 60%% of the run (after growth ends; PromptGS: not before its views reach full size), remove the 40%% of the Gaussians that carry the least "
         "blending weight in the training views (at most 5%% of it), and fine-tune the rest; prompted objects are kept",
     )
+    p.add_argument("--init", help="start from the Gaussians of this .ply, .spz, .gltf or .glb file instead of the SfM points (no sky shell)")
+    p.add_argument("--export", help="also write the final Gaussians as these formats beside RUN/point_cloud.ply: spz, gltf (comma-separated)")
     p.add_argument("--snapshot-every", type=int, help="write a snapshot for the Blender add-on every N steps")
     p.add_argument("--checkpoint-every", type=int)
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
@@ -92,7 +94,7 @@ def _add_train(sub) -> None:
 _TRAIN_KEYS = (
     "dataset", "out", "images", "iterations", "backend", "strategy", "seed", "resolution_scale",
     "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "propose_prompts", "sky", "progressive", "screen_filter", "antialiased", "compact", "snapshot_every", "checkpoint_every",
-    "batch_size",
+    "batch_size", "init", "export",
 )
 # Job-file keys that say how to run, not what to train (not TrainConfig fields).
 _RUN_KEYS = ("nproc",)
@@ -188,7 +190,11 @@ def _print_metrics(metrics: dict) -> None:
 
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="evaluate a run folder on its test views")
-    p.add_argument("run", type=Path)
+    p.add_argument("run", type=Path, help="run folder, or a .ply/.spz/.gltf/.glb file inside one")
+    p.add_argument(
+        "--gaussians", type=Path,
+        help="evaluate this .ply, .spz, .gltf or .glb file with the run's dataset and settings (printed; RUN/metrics.json untouched)",
+    )
     p.add_argument("--masks", type=Path, help="object masks (white = object), same names as the images")
     p.add_argument("--save-renders", action="store_true", help="keep the test-view renders in RUN/renders/")
     p.add_argument("--quiet", action="store_true")
@@ -198,7 +204,8 @@ def _add_eval(sub) -> None:
 def cmd_eval(args: argparse.Namespace) -> int:
     from .evaluation import evaluate_run
 
-    _print_metrics(evaluate_run(args.run, mask_dir=args.masks, quiet=args.quiet, save_renders=args.save_renders))
+    run, gaussians = (args.run.parent, args.run) if args.run.is_file() else (args.run, args.gaussians)
+    _print_metrics(evaluate_run(run, mask_dir=args.masks, quiet=args.quiet, save_renders=args.save_renders, gaussians=gaussians))
     return 0
 
 
@@ -246,6 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench.grid import add_parser as add_bench
     from .bench.report import add_parser as add_report
     from .bench.stability import add_parser as add_stability
+    from .formats.cli import add_parser as add_export
     from .propose import add_parser as add_propose
     from .synthetic.cli import add_parser as add_dataset
 
@@ -254,6 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench(sub)
     add_report(sub)
     add_stability(sub)
+    add_export(sub)
     add_propose(sub)
     return parser
 

@@ -99,3 +99,32 @@ def save_gaussians(
         tmp.write_bytes(encode_gltf(splats, binary=path.suffix.lower() != ".gltf"))
     os.replace(tmp, path)
     return path
+
+
+def export_formats(value: str | list | tuple | None) -> list[str]:
+    """The formats of ``--export`` ("spz,gltf", or a job file's list), checked."""
+    if value is None:
+        return []
+    names = value.split(",") if isinstance(value, str) else list(value)
+    names = [str(name).strip().lower() for name in names if str(name).strip()]
+    unknown = [name for name in names if name not in FORMATS]
+    if unknown:
+        raise PromptGSError(f"--export: unknown format {unknown[0]!r} (use {', '.join(FORMATS)}, comma-separated)")
+    return list(dict.fromkeys(names))
+
+
+def save_exports(params, ply_path: str | Path, formats: list[str], antialiased: bool = False) -> list[Path]:
+    """Beside a run's PLY, the same Gaussians in each of ``formats`` (``point_cloud.spz``,
+    ``point_cloud.glb``); the PLY itself is not rewritten."""
+    ply_path = Path(ply_path)
+    return [save_gaussians(ply_path.with_suffix(DEFAULT_SUFFIX[kind]), params, kind, antialiased=antialiased)
+            for kind in formats if kind != "ply"]
+
+
+def check_init(path: str | None) -> None:
+    """An ``--init`` file must exist and be of a known type (read when training starts)."""
+    if path is None:
+        return
+    format_of(path)
+    if not Path(path).is_file():
+        raise PromptGSError(f"{path}: --init file not found")
