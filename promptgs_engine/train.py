@@ -31,7 +31,7 @@ from .distributed import RANK_PARAMS_ENV, Dist
 from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
 from .focus import PromptFocus, TrainView, load_prompt_setting, run_length
-from .formats import load_gaussians, save_exports
+from .formats import EXPORT_NAMES, load_gaussians, save_exports
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
 from .metrics import loss_and_mse, mse_to_psnr
@@ -578,7 +578,7 @@ def run_training(
     if writer:
         out.mkdir(parents=True, exist_ok=True)
         if overwrite and not resume:
-            for name in (CHECKPOINT, FINAL_PLY, "metrics.json", SUMMARY):
+            for name in (CHECKPOINT, FINAL_PLY, "metrics.json", SUMMARY, *EXPORT_NAMES):
                 (out / name).unlink(missing_ok=True)
         (out / "cfg.json").write_text(json.dumps(cfg.to_json(), indent=2))
         handler = _attach_log_file(log_path)

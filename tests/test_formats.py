@@ -55,9 +55,12 @@ def covariances(quats: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
     return np.einsum("nij,nj,nkj->nik", r, s, r)
 
 
-def assert_within_spz_codes(original: Splats, decoded: Splats, sh_bits: tuple[int, int] = (8, 8)) -> None:
+def assert_within_spz_codes(
+    original: Splats, decoded: Splats, sh_bits: tuple[int, int] = (8, 8), rounded_twice: bool = False
+) -> None:
     """Every attribute within half a step of SPZ's code for it (in its own frame: the SH
-    error's norm per band is kept by the rotation between frames)."""
+    error's norm per band is kept by the rotation between frames). ``rounded_twice``: SH
+    codes rounded to 1/128 before their multiple, as Niantic's library does (half a code more)."""
     reach = float(np.abs(original.means).max())
     bits = 12
     while reach * (1 << bits) > (1 << 23) - 1:
@@ -69,8 +72,8 @@ def assert_within_spz_codes(original: Splats, decoded: Splats, sh_bits: tuple[in
     assert np.abs(unit(decoded.quats) - unit(original.quats)).max() <= 2.1 * (0.5**0.5 / 511)
     for band in range(1, original.sh_degree + 1):
         rows = slice(band * band - 1, (band + 1) ** 2 - 1)
-        bucket = 2 ** (8 - sh_bits[0 if band == 1 else 1])  # codes of 1/128 rounded to multiples of this
-        half_step = (bucket // 2 + 0.5) / 128
+        bucket = 2 ** (8 - sh_bits[0 if band == 1 else 1])  # codes of 1/128 on multiples of this
+        half_step = (bucket / 2 + (0.5 if rounded_twice and bucket > 1 else 0.0)) / 128
         error = np.linalg.norm(decoded.sh_rest[:, rows] - original.sh_rest[:, rows], axis=1)
         assert error.max() <= np.sqrt(2 * band + 1) * half_step + 1e-5, f"SH degree {band}"
 
@@ -161,6 +164,16 @@ def test_spz_round_trip_is_within_its_codes(tmp_path, version, sh_bits):
     assert_within_spz_codes(g, back, sh_bits)
 
 
+def test_spz_sh_codes_have_no_bias(tmp_path):
+    """Coarser SH codes stay centred: rounding to 1/128 first and then to the multiple with
+    ties up (Niantic's library) shifts every coefficient by half a code at 7 bits (+1/256)."""
+    g = gaussians(2000)
+    back = read_splats(save_gaussians(tmp_path / "m.spz", g, spz_sh_bits=(7, 7)))
+    error = rotate_sh(Z_UP_TO_Y_UP, back.sh_rest).astype(np.float64) - rotate_sh(Z_UP_TO_Y_UP, g.sh_rest)
+    assert abs(error.mean()) < 1e-4, error.mean()  # its spread: 1/128 / sqrt(3) over 90,000 values
+    assert np.abs(error).max() <= 1 / 128 + 1e-6
+
+
 def test_spz_far_gaussians_get_fewer_fractional_bits(tmp_path):
     g = gaussians(100)
     g.means[0] = [5000.0, -3000.0, 20.0]  # past 12 fractional bits' ±2048
@@ -228,7 +241,7 @@ def test_our_reader_decodes_niantics_spz(tmp_path, version):
         quats=rotate_quats(Z_UP_TO_Y_UP, back.quats), opacities=back.opacities, sh0=back.sh0,
         sh_rest=rotate_sh(Z_UP_TO_Y_UP, back.sh_rest),
     )
-    assert_within_spz_codes(g, in_spz_frame, sh_bits=(5, 4))
+    assert_within_spz_codes(g, in_spz_frame, sh_bits=(5, 4), rounded_twice=True)
 
 
 # -- bad input ------------------------------------------------------------------------
@@ -372,3 +385,6 @@ def test_export_eval_and_init_from_a_run(toy, tmp_path, capsys):
     _one_line_error(capsys, ["train", str(toy), "--out", str(tmp_path / "x"), "--init", str(tmp_path / "none.spz")],
                     "none.spz", "not found")
     _one_line_error(capsys, ["train", str(toy), "--out", str(tmp_path / "x"), "--export", "spz,obj"], "'obj'")
+    # A run trained again in the same folder without --export leaves no stale exports.
+    assert main(["train", str(toy), "--out", str(out), "--iterations", "10", "--overwrite", "--quiet"]) == 0
+    assert not (out / "point_cloud.spz").exists() and not (out / "point_cloud.glb").exists()

@@ -22,6 +22,7 @@ from .splats import Splats
 FORMATS = ("ply", "spz", "gltf")
 SUFFIXES = {".ply": "ply", ".spz": "spz", ".glb": "gltf", ".gltf": "gltf"}
 DEFAULT_SUFFIX = {"ply": ".ply", "spz": ".spz", "gltf": ".glb"}
+EXPORT_NAMES = ("point_cloud.spz", "point_cloud.glb")  # what `train --export` writes beside point_cloud.ply
 # SPZ's SH codes keep all 8 bits by default (Niantic's library keeps 5 for degree 1 and
 # 4 above): the test-view PSNR a model loses stays within 0.2 dB at SH degree 3
 # (benchmarks/formats.py). Coarser codes give smaller files.
