@@ -7,7 +7,6 @@ from __future__ import annotations
 import gzip
 import json
 import struct
-from pathlib import Path
 
 import numpy as np
 import pytest
