@@ -184,15 +184,18 @@ def evaluate_run(
     scene: Scene | None = None,
     quiet: bool = False,
     save_renders: bool = False,
+    gaussians: Path | None = None,
 ) -> dict:
     """Evaluate a run folder on its test views; writes and returns ``metrics.json``.
+    With ``gaussians`` (a PLY, SPZ or glTF file), those Gaussians are evaluated with the
+    run's dataset and settings instead, and only returned.
 
     A dataset with ``object_masks/`` is evaluated on them by default, and with
     ``gt_nodrones/`` beside them also for per-object recall. ``save_renders`` keeps the
     test-view renders in ``RUN/renders/``.
     """
     run_dir = Path(run_dir)
-    cfg, params = load_run(run_dir)
+    cfg, params = load_run(run_dir, gaussians=gaussians)
     if scene is None:
         scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     if mask_dir is None and (Path(cfg.dataset) / "object_masks").is_dir():
@@ -204,6 +207,8 @@ def evaluate_run(
         render_dir=run_dir / RENDERS if save_renders else None, screen_filter=cfg.effective_screen_filter,
         rasterize_mode=cfg.rasterize_mode,
     )
+    if gaussians is not None:
+        return {**metrics, "gaussians": str(gaussians), "n_gaussians": int(params["means"].shape[0])}
     summary_path = run_dir / SUMMARY
     if summary_path.is_file():
         metrics = {**json.loads(summary_path.read_text()), **metrics}

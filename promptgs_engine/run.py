@@ -18,6 +18,7 @@ from .errors import PromptGSError
 from .evaluation import evaluate_run
 from .events import EventWriter
 from .focus import load_prompt_setting
+from .formats import EXPORT_NAMES
 from .prompts import check_visible
 from .run_folder import CHECKPOINT, CONFIG, FINAL_PLY, LOG, METRICS, SUMMARY, check_out_dir
 from .train import Trainer
@@ -81,7 +82,7 @@ def run_training(
     if writer:
         out.mkdir(parents=True, exist_ok=True)
         if overwrite and not resume:
-            for name in (CHECKPOINT, FINAL_PLY, METRICS, SUMMARY):
+            for name in (CHECKPOINT, FINAL_PLY, METRICS, SUMMARY, *EXPORT_NAMES):
                 (out / name).unlink(missing_ok=True)
         (out / CONFIG).write_text(json.dumps(cfg.to_json(), indent=2))
         handler = _attach_log_file(log_path)

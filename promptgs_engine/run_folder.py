@@ -15,6 +15,7 @@ import torch
 from .config import TrainConfig
 from .errors import PromptGSError
 from .events import read_snapshot_params
+from .formats import load_gaussians
 from .gaussians import load_ply
 
 CONFIG = "cfg.json"
@@ -42,14 +43,19 @@ def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
         raise PromptGSError(f"{out}: holds a run that stopped before its first checkpoint (use --overwrite to start it again)")
 
 
-def load_run(run_dir: Path, snapshot: Path | None = None) -> tuple[TrainConfig, torch.nn.ParameterDict]:
-    """A run's settings and Gaussians: its ``point_cloud.ply``, or a snapshot of it."""
+def load_run(
+    run_dir: Path, snapshot: Path | None = None, gaussians: Path | None = None
+) -> tuple[TrainConfig, torch.nn.ParameterDict]:
+    """A run's settings and Gaussians: its ``point_cloud.ply``, a snapshot of it, or the
+    ``gaussians`` of a PLY, SPZ or glTF file (formats/)."""
     run_dir = Path(run_dir)
     if not (run_dir / CONFIG).is_file():
         raise PromptGSError(f"{run_dir}: not a PromptGS run folder (no {CONFIG})")
     cfg = TrainConfig.load(run_dir / CONFIG)
     if snapshot is not None:
         return cfg, read_snapshot_params(snapshot)
+    if gaussians is not None:
+        return cfg, load_gaussians(gaussians)
     if not (run_dir / FINAL_PLY).is_file():
         raise PromptGSError(f"{run_dir}: no {FINAL_PLY} yet (the run has not finished); a snapshot can be rendered")
     return cfg, load_ply(run_dir / FINAL_PLY)

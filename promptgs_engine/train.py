@@ -38,6 +38,7 @@ from .distributed import RANK_PARAMS_ENV, Dist
 from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
 from .focus import LiveModel, PromptFocus, load_prompt_setting, run_length
+from .formats import load_gaussians, save_exports
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
 from .metrics import loss_and_mse, mse_to_psnr
@@ -136,13 +137,14 @@ class Trainer:
         points, colors = self.scene.points.float(), self.scene.point_colors.float()
         self.n_sky_points = 0
         sky_radius = 0.0
-        if cfg.sky and points.shape[0]:
+        if cfg.sky and points.shape[0] and not cfg.init:
             sky, sky_colors, sky_radius = sky_points(self.scene.train_cameras, points)
             points, colors = torch.cat([points, sky]), torch.cat([colors, sky_colors])
             self.n_sky_points = sky.shape[0]
             log.info("%d SfM points and %d far background (sky) points", self.scene.points.shape[0], self.n_sky_points)
-        self.params = init_from_points(
-            points, colors, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity
+        self.params = (
+            load_gaussians(cfg.init, sh_degree=cfg.sh_degree) if cfg.init
+            else init_from_points(points, colors, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity)
         ).to(self.device)
         self.optimizers = make_optimizers(self.params, cfg, self.scene.extent, self.batch_size)
         gamma = 0.01 ** (1.0 / self.total_steps)
@@ -598,6 +600,7 @@ class Trainer:
         self.save_checkpoint()
         if self.dist.is_writer:
             save_ply(self.params, self.out / FINAL_PLY)
+            save_exports(self.params, self.out / FINAL_PLY, cfg.export, antialiased=cfg.antialiased)
         if self.events.enabled and not cfg.snapshot_every:
             self.snapshot()
         log.info("trained %d steps in %.1f s, %d Gaussians", self.step, self.train_seconds, self.n_gaussians)

@@ -17,8 +17,8 @@ ENGINE_LAYERS: tuple[frozenset[str], ...] = tuple(map(frozenset, (
     # no engine imports of their own (but the compiled rasterizer)
     {"__init__", "_C", "errors", "threads", "determinism", "adam"},
     # the pieces: scenes, rendering, the Gaussians, prompt boxes, losses and metrics, events
-    {"data", "render", "gaussians", "prompts", "losses", "metrics", "residuals", "sky", "events", "distributed",
-     "synthetic"},
+    {"data", "render", "gaussians", "formats", "prompts", "losses", "metrics", "residuals", "sky", "events",
+     "distributed", "synthetic"},
     # the method and the run folder: strategies, views, the error field, proposals, the
     # prompt bookkeeping, compaction, batch rules, settings, evaluation, SfM
     {"strategies", "config", "errorfield", "views", "proposals", "propose", "compaction", "batch", "focus",
