@@ -80,8 +80,12 @@ def prepare(tmp: Path, shared_data: Path, zip_path: Path) -> Path:
     fake = tmp / "fake_python"
     fake.write_text(f"#!/bin/sh\nexec {sys.executable} {SCRIPTS / 'fake_trainer.py'} \"$@\"\n")
     fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
+    slow = tmp / "slow_python"  # this interpreter (it has the engine), after a 2 s pause
+    slow.write_text(f"#!/bin/sh\nsleep 2\nexec {sys.executable} \"$@\"\n")
+    slow.chmod(slow.stat().st_mode | stat.S_IEXEC)
     config = {"zip": str(zip_path), "tmp": str(tmp), "tumbler": str(shared_data / "tumbler"),
-              "fern": str(shared_data / "fern"), "fake_python": str(fake),
+              "fern": str(shared_data / "fern"), "fake_python": str(fake), "slow_python": str(slow),
+              "repo": str(REPO), "home": str(tmp / "home"),
               "projections": projections(shared_data / "tumbler"),
               "pinhole": str(tmp / "pinhole"), "pinhole_projections": pinhole_dataset(tmp / "pinhole")}
     (tmp / "config.json").write_text(json.dumps(config))
@@ -130,8 +134,13 @@ CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap"
           "dataset_without_images_is_a_clear_error", "dataset_generation_runs_in_background",
           "reconstruct_from_photos_imports_the_result", "reconstruct_errors_and_cancel", "load_result_reads_3dgs_ply", "million_points_update", "display_settings_apply", "propose_accept_and_reject",
           "proposed_cubes_drawn_in_their_colour", "training_proposals_become_proposed_cubes",
-          "panels_draw_in_every_state", "loading_a_file_stops_the_trainer", "overlay_handler_follows_register",
-          "proposed_cubes_draw_orange_pixels", "never_imports_torch_or_engine"]
+          "panels_draw_in_every_state", "runs_need_no_modal_operator", "second_run_keeps_the_first_and_runs_switch",
+          "undo_after_a_snapshot_leaves_a_consistent_scene", "the_panel_tells_what_went_wrong",
+          "buttons_grey_out_when_they_cannot_run", "a_picked_photo_means_its_folder",
+          "find_and_test_run_in_the_background", "set_up_trainer_says_what_it_needs",
+          "cancel_ends_every_process_of_the_trainer", "overlay_handler_follows_register",
+          "proposed_cubes_draw_orange_pixels", "loading_a_file_detaches_the_run",
+          "reopened_file_shows_result_or_resume", "never_imports_torch_or_engine"]
 
 
 @pytest.mark.parametrize("line", LINES, ids=str)
