@@ -9,7 +9,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import addon, bpy, check, finish, config, forbidden_modules, blocked_attempts, install, run_until_idle  # noqa: E402
+from harness import (addon, blocked_attempts, bpy, check, config, finish, forbidden_modules, install,  # noqa: E402
+                     process_gone, run_until_idle)
 
 import numpy as np  # noqa: E402
 from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
@@ -86,21 +87,6 @@ def drain_until(condition, timeout: float = 60.0, what: str = "the condition") -
 
 def live_run():
     return addon("training").live_of(state())
-
-
-def process_gone(pid: int) -> bool:
-    """Whether the process has exited (a zombie waiting for its parent counts as gone)."""
-    try:
-        text = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return True
-        except OSError:
-            return False
-        return not Path("/proc/self/stat").exists()
-    return text[text.rindex(")") + 2:].split()[0] == "Z"
 
 
 def shown_gaussians() -> tuple[str, int]:
@@ -1151,7 +1137,7 @@ def cancel_ends_every_process_of_the_trainer():
     assert not left, left
     assert state().status == "CANCELLED", (state().status, state().message)
     assert seconds < 1.0 + 5.0 + 5.0 + 2.0, seconds  # the wait, SIGTERM's 5 s, SIGKILL
-    return {"processes": len(pids), "seconds": round(seconds, 2)}
+    return {"processes": len(pids), "cancel_seconds": round(seconds, 2)}
 
 
 @check

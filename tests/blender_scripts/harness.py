@@ -9,9 +9,11 @@ by the add-on fails loudly and is recorded.
 """
 
 import json
+import os
 import sys
 import time
 import traceback
+from pathlib import Path
 
 BLOCKED = ("torch", "promptgs_engine", "pycolmap", "plyfile")
 blocked_attempts: list[str] = []
@@ -79,6 +81,41 @@ def run_until_idle(timeout: float = 300.0, on_events=None) -> None:
             return
         time.sleep(0.05)
     raise TimeoutError("the trainer run did not finish in time")
+
+
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and every process below it (read from /proc here, not with the add-on's code)."""
+    parents = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                text = (entry / "stat").read_text()
+            except OSError:
+                continue
+            parents[int(entry.name)] = int(text[text.rindex(")") + 2:].split()[1])
+    tree, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        tree.append(current)
+        todo += [child for child, parent in parents.items() if parent == current]
+    return tree
+
+
+def process_gone(pid: int) -> bool:
+    """Whether the process has exited (a zombie waiting for its parent counts as gone)."""
+    if not Path("/proc/self/stat").exists():  # no /proc (macOS): ask the kernel
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        except OSError:
+            pass
+        return False
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True
+    return text[text.rindex(")") + 2:].split()[0] == "Z"
 
 
 def forbidden_modules() -> list[str]:
