@@ -179,6 +179,42 @@ def test_overlay_draws_where_blender_can_draw_without_a_window(line_results, lin
     assert outcome["drawn"] and outcome["orange_pixels"] > 100, outcome
 
 
+@pytest.mark.parametrize("line", LINES, ids=str)
+def test_installs_from_the_repository_index(line, tmp_path, blender_envs, extension_zip):
+    """The folder tools/build_extension.py makes is an extension repository: a fresh
+    profile of each line adds its index.json as a remote repository (file:// URL) and
+    installs and enables the extension from it."""
+    import tomllib
+
+    sys.path.insert(0, str(REPO / "tools"))
+    import build_extension
+
+    try:
+        python = blender_envs.python(line)
+    except LineUnavailable as exc:
+        pytest.skip(str(exc))
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    shutil.copy2(extension_zip, repo / extension_zip.name)
+    index = build_extension.write_index(repo)
+    listed = json.loads(index.read_text())["data"]
+    manifest = tomllib.loads((REPO / "blender_manifest.toml").read_text())
+    assert [(p["id"], p["version"], p["archive_url"]) for p in listed] == \
+        [("promptgs", manifest["version"], f"./{extension_zip.name}")]
+    assert manifest["website"].startswith("https://") and listed[0]["website"] == manifest["website"]
+    config = {"index_url": index.resolve().as_uri(), "version": manifest["version"]}
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    (tmp_path / "home").mkdir()
+    done = subprocess.run([python, str(SCRIPTS / "repo_checks.py"), str(tmp_path / "config.json"),
+                           str(tmp_path / "results.json")], env=dict(os.environ, HOME=str(tmp_path / "home")),
+                          capture_output=True, text=True, timeout=600)
+    if not (tmp_path / "results.json").is_file():
+        pytest.fail(f"Blender {line.name}: the script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    outcome = json.loads((tmp_path / "results.json").read_text())["installed_from_the_repository_index"]
+    assert outcome["ok"], f"Blender {line.name}: {outcome['error']}\n{outcome.get('traceback', '')}"
+    assert outcome["repo_directory"].startswith(str(tmp_path / "home")), outcome  # the fresh profile
+
+
 def _blender_binary() -> str | None:
     """A ``blender`` (≥ 4.2, extensions) on PATH or in $BLENDER, else None."""
     binary = os.environ.get("BLENDER") or shutil.which("blender")

@@ -9,8 +9,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import (addon, blocked_attempts, bpy, check, config, finish, forbidden_modules, install,  # noqa: E402
-                     process_gone, run_until_idle)
+from harness import (addon, blocked_attempts, bpy, cancel_and_wait, check, config, finish, forbidden_modules,  # noqa: E402
+                     install, process_gone, run_until_idle)
 
 import numpy as np  # noqa: E402
 from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
@@ -1124,16 +1124,9 @@ def cancel_ends_every_process_of_the_trainer():
     assert not any(process_gone(pid) for pid in pids)
     training.CANCEL_TIMEOUT_S = 1.0
     try:
-        start = time.time()
-        bpy.ops.promptgs.cancel()
-        run_until_idle(30)
-        deadline = time.time() + 15
-        while not all(process_gone(pid) for pid in pids) and time.time() < deadline:
-            time.sleep(0.05)
-        seconds = time.time() - start
+        seconds, left = cancel_and_wait(pids, 15)
     finally:
         training.CANCEL_TIMEOUT_S = 20.0
-    left = [pid for pid in pids if not process_gone(pid)]
     assert not left, left
     assert state().status == "CANCELLED", (state().status, state().message)
     assert seconds < 1.0 + 5.0 + 5.0 + 2.0, seconds  # the wait, SIGTERM's 5 s, SIGKILL

@@ -118,6 +118,18 @@ def process_gone(pid: int) -> bool:
     return text[text.rindex(")") + 2:].split()[0] == "Z"
 
 
+def cancel_and_wait(pids: list[int], gone_within: float) -> tuple[float, list[int]]:
+    """Press Cancel, follow the run to its end, wait up to ``gone_within`` s for every one
+    of ``pids`` to exit: (seconds from the press, the pids still running)."""
+    start = time.time()
+    bpy.ops.promptgs.cancel()
+    run_until_idle(60)
+    deadline = time.time() + gone_within
+    while not all(process_gone(pid) for pid in pids) and time.time() < deadline:
+        time.sleep(0.05)
+    return time.time() - start, [pid for pid in pids if not process_gone(pid)]
+
+
 def forbidden_modules() -> list[str]:
     return sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
 

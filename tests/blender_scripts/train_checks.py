@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import (addon, bpy, check, config, finish, forbidden_modules, install, process_gone,  # noqa: E402
+from harness import (addon, bpy, cancel_and_wait, check, config, finish, forbidden_modules, install,  # noqa: E402
                      process_tree, run_until_idle)
 
 import bmesh  # noqa: E402
@@ -320,16 +320,9 @@ def multi_rank_cancel_leaves_no_process():
         drain_until(lambda: state().step > 0, config["timeout"], "the first step of both ranks")
         tree = process_tree(training.current_run().pid)
         assert len(tree) >= 4, tree  # launcher, torchrun, two ranks
-        start = time.time()
-        bpy.ops.promptgs.cancel()
-        run_until_idle(60)
-        deadline = time.time() + 30
-        while not all(process_gone(pid) for pid in tree) and time.time() < deadline:
-            time.sleep(0.1)
-        seconds = time.time() - start
+        seconds, left = cancel_and_wait(tree, 30)
     finally:
         settings.nproc = 1
-    left = [pid for pid in tree if not process_gone(pid)]
     assert not left, left
     assert state().status == "CANCELLED", (state().status, state().message)
     return {"processes": len(tree), "cancel_seconds": round(seconds, 2), "message": state().message}
