@@ -161,6 +161,37 @@ def test_trainer_never_imported_in_blender(run):
     _ok(run[1], "never_imports_torch_or_engine")
 
 
+@pytest.mark.skipif(os.environ.get("PROMPTGS_TEST_SETUP") != "1",
+                    reason="installs torch and compiles the engine into a new environment (minutes, about 1 GB): "
+                           "PROMPTGS_TEST_SETUP=1 runs it")
+def test_set_up_trainer_makes_an_environment_that_trains(tmp_path, toy, extension_zip):
+    """*Set Up Trainer* in this interpreter's bpy (the project's own line), for real: a
+    fresh environment made from this interpreter, torch 2.13.0 CPU and the engine built
+    from a copy of this checkout's files; then it trains the toy scene from the panel."""
+    source = tmp_path / "checkout"
+    files = subprocess.run(["git", "-C", str(REPO), "ls-files"], capture_output=True, text=True, check=True).stdout
+    for name in files.splitlines():
+        if (REPO / name).is_file():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            (source / name).write_bytes((REPO / name).read_bytes())
+    config = {"zip": str(extension_zip), "tmp": str(tmp_path), "base_python": sys.executable, "source": str(source),
+              "torch_index": os.environ.get("PROMPTGS_TORCH_INDEX", ""), "toy": str(toy), "timeout": 3000}
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    (tmp_path / "home").mkdir()
+    env = dict(os.environ, HOME=str(tmp_path / "home"))
+    env.pop("PYTHONPATH", None)  # the new environment must import its own engine
+    done = subprocess.run([sys.executable, str(SCRIPTS / "setup_checks.py"), str(tmp_path / "config.json"),
+                           str(tmp_path / "results.json")], env=env, capture_output=True, text=True, timeout=3600)
+    (tmp_path / "stdout.log").write_text(done.stdout + done.stderr)
+    if not (tmp_path / "results.json").is_file():
+        pytest.fail(f"the script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    results = json.loads((tmp_path / "results.json").read_text())
+    for name in ("set_up_trainer_makes_the_environment", "the_environment_trains_the_toy_scene",
+                 "never_imports_torch_or_engine"):
+        _ok(results, name)
+    assert results["set_up_trainer_makes_the_environment"]["python"].startswith(str(tmp_path))
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process tree from /proc")
 @pytest.mark.parametrize("line", LINES, ids=str)
 def test_a_killed_blender_leaves_no_trainer_running(line, tmp_path, shared_data, blender_envs, extension_zip):

@@ -1018,6 +1018,14 @@ def buttons_grey_out_when_they_cannot_run():
         settings.root, settings.dataset, scene().camera = root, dataset, camera
     assert not no_dataset and not no_camera, (no_dataset, no_camera)
     assert not ops.accept_proposal.poll()  # no proposed cube
+    # Cancel asks first when more than a minute since the last checkpoint would be trained
+    # again (its dialog is Blender's invoke_confirm, with an icon it offers)
+    record = SimpleNamespace(step=1500, elapsed_s=300.0, checkpoint_every=1000, folder="")
+    assert addon("training").unsaved_seconds(record) == 100.0 > addon("training").CONFIRM_AFTER_S
+    record.step = 2100
+    assert addon("training").unsaved_seconds(record) < addon("training").CONFIRM_AFTER_S
+    icons = bpy.types.WindowManager.bl_rna.functions["invoke_confirm"].parameters["icon"].enum_items.keys()
+    assert {"WARNING", "QUESTION"} <= set(icons), icons
     return {"idle": idle, "busy": busy}
 
 
