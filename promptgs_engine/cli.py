@@ -365,6 +365,9 @@ def main(argv: list[str] | None = None) -> int:
     # ignores SIGINT (a background job of a script, some launchers) inherits the ignore
     # and Python then installs no handler: restore it so cancel always works.
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    from .lifeline import watch_from_env
+
+    watch_from_env()  # a client's pipe on stdin (PROMPTGS_LIFELINE=stdin): stop when it closes
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # `train --nproc` hands them to torchrun

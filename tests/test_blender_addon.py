@@ -80,8 +80,12 @@ def prepare(tmp: Path, shared_data: Path, zip_path: Path) -> Path:
     fake = tmp / "fake_python"
     fake.write_text(f"#!/bin/sh\nexec {sys.executable} {SCRIPTS / 'fake_trainer.py'} \"$@\"\n")
     fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
+    slow = tmp / "slow_python"  # this interpreter (it has the engine), after a 2 s pause
+    slow.write_text(f"#!/bin/sh\nsleep 2\nexec {sys.executable} \"$@\"\n")
+    slow.chmod(slow.stat().st_mode | stat.S_IEXEC)
     config = {"zip": str(zip_path), "tmp": str(tmp), "tumbler": str(shared_data / "tumbler"),
-              "fern": str(shared_data / "fern"), "fake_python": str(fake),
+              "fern": str(shared_data / "fern"), "fake_python": str(fake), "slow_python": str(slow),
+              "repo": str(REPO), "home": str(tmp / "home"),
               "projections": projections(shared_data / "tumbler"),
               "pinhole": str(tmp / "pinhole"), "pinhole_projections": pinhole_dataset(tmp / "pinhole")}
     (tmp / "config.json").write_text(json.dumps(config))
@@ -130,8 +134,13 @@ CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap"
           "dataset_without_images_is_a_clear_error", "dataset_generation_runs_in_background",
           "reconstruct_from_photos_imports_the_result", "reconstruct_errors_and_cancel", "load_result_reads_3dgs_ply", "million_points_update", "display_settings_apply", "propose_accept_and_reject",
           "proposed_cubes_drawn_in_their_colour", "training_proposals_become_proposed_cubes",
-          "panels_draw_in_every_state", "loading_a_file_stops_the_trainer", "overlay_handler_follows_register",
-          "proposed_cubes_draw_orange_pixels", "never_imports_torch_or_engine"]
+          "panels_draw_in_every_state", "runs_need_no_modal_operator", "second_run_keeps_the_first_and_runs_switch",
+          "undo_after_a_snapshot_leaves_a_consistent_scene", "the_panel_tells_what_went_wrong",
+          "buttons_grey_out_when_they_cannot_run", "a_picked_photo_means_its_folder",
+          "find_and_test_run_in_the_background", "set_up_trainer_says_what_it_needs",
+          "cancel_ends_every_process_of_the_trainer", "overlay_handler_follows_register",
+          "proposed_cubes_draw_orange_pixels", "loading_a_file_detaches_the_run",
+          "reopened_file_shows_result_or_resume", "never_imports_torch_or_engine"]
 
 
 @pytest.mark.parametrize("line", LINES, ids=str)
@@ -168,6 +177,42 @@ def test_overlay_draws_where_blender_can_draw_without_a_window(line_results, lin
     if not outcome["drawn"] and outcome["why"].startswith("gpu.init"):
         pytest.skip(outcome["why"])  # no offscreen GPU context on this machine
     assert outcome["drawn"] and outcome["orange_pixels"] > 100, outcome
+
+
+@pytest.mark.parametrize("line", LINES, ids=str)
+def test_installs_from_the_repository_index(line, tmp_path, blender_envs, extension_zip):
+    """The folder tools/build_extension.py makes is an extension repository: a fresh
+    profile of each line adds its index.json as a remote repository (file:// URL) and
+    installs and enables the extension from it."""
+    import tomllib
+
+    sys.path.insert(0, str(REPO / "tools"))
+    import build_extension
+
+    try:
+        python = blender_envs.python(line)
+    except LineUnavailable as exc:
+        pytest.skip(str(exc))
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    shutil.copy2(extension_zip, repo / extension_zip.name)
+    index = build_extension.write_index(repo)
+    listed = json.loads(index.read_text())["data"]
+    manifest = tomllib.loads((REPO / "blender_manifest.toml").read_text())
+    assert [(p["id"], p["version"], p["archive_url"]) for p in listed] == \
+        [("promptgs", manifest["version"], f"./{extension_zip.name}")]
+    assert manifest["website"].startswith("https://") and listed[0]["website"] == manifest["website"]
+    config = {"index_url": index.resolve().as_uri(), "version": manifest["version"]}
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    (tmp_path / "home").mkdir()
+    done = subprocess.run([python, str(SCRIPTS / "repo_checks.py"), str(tmp_path / "config.json"),
+                           str(tmp_path / "results.json")], env=dict(os.environ, HOME=str(tmp_path / "home")),
+                          capture_output=True, text=True, timeout=600)
+    if not (tmp_path / "results.json").is_file():
+        pytest.fail(f"Blender {line.name}: the script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    outcome = json.loads((tmp_path / "results.json").read_text())["installed_from_the_repository_index"]
+    assert outcome["ok"], f"Blender {line.name}: {outcome['error']}\n{outcome.get('traceback', '')}"
+    assert outcome["repo_directory"].startswith(str(tmp_path / "home")), outcome  # the fresh profile
 
 
 def _blender_binary() -> str | None:

@@ -42,7 +42,7 @@ def run(request, tmp_path_factory, shared_data, blender_envs, extension_zip):
     strategy = "promptgs" if (REPO / "promptgs_engine" / "strategies" / "promptgs.py").is_file() else "3dgs"
     config = {"zip": str(extension_zip), "tmp": str(tmp), "python": sys.executable,
               "tumbler": str(shared_data / "tumbler"), "iterations": 20, "snapshot_every": 10,
-              "strategy": strategy, "timeout": 240, "image": str(image), "render_camera": "12.jpg",
+              "strategy": strategy, "timeout": 240, "resume_iterations": 60, "image": str(image), "render_camera": "12.jpg",
               "prompt_rect": [210, 160, 560, 380],  # the cup in 12.jpg
               "update_docs": update_docs}
     (tmp / "config.json").write_text(json.dumps(config))
@@ -147,5 +147,98 @@ def test_cancel_keeps_last_snapshot(run):
     assert info["snapshot_step"] > 0
 
 
+def test_an_interrupted_run_resumes_to_the_uninterrupted_result(run):
+    info = _ok(run[1], "resume_reaches_the_uninterrupted_result")
+    assert info["resumed_at"] >= 10
+
+
+def test_a_two_process_cancel_leaves_no_process(run):
+    info = _ok(run[1], "multi_rank_cancel_leaves_no_process")
+    assert info["processes"] >= 4
+
+
 def test_trainer_never_imported_in_blender(run):
     _ok(run[1], "never_imports_torch_or_engine")
+
+
+@pytest.mark.skipif(os.environ.get("PROMPTGS_TEST_SETUP") != "1",
+                    reason="installs torch and compiles the engine into a new environment (minutes, about 1 GB): "
+                           "PROMPTGS_TEST_SETUP=1 runs it")
+def test_set_up_trainer_makes_an_environment_that_trains(tmp_path, toy, extension_zip):
+    """*Set Up Trainer* in this interpreter's bpy (the project's own line), for real: a
+    fresh environment made from this interpreter, torch 2.13.0 CPU and the engine built
+    from a copy of this checkout's files; then it trains the toy scene from the panel."""
+    source = tmp_path / "checkout"
+    files = subprocess.run(["git", "-C", str(REPO), "ls-files"], capture_output=True, text=True, check=True).stdout
+    for name in files.splitlines():
+        if (REPO / name).is_file():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            (source / name).write_bytes((REPO / name).read_bytes())
+    config = {"zip": str(extension_zip), "tmp": str(tmp_path), "base_python": sys.executable, "source": str(source),
+              "torch_index": os.environ.get("PROMPTGS_TORCH_INDEX", ""), "toy": str(toy), "timeout": 3000}
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    (tmp_path / "home").mkdir()
+    env = dict(os.environ, HOME=str(tmp_path / "home"))
+    env.pop("PYTHONPATH", None)  # the new environment must import its own engine
+    done = subprocess.run([sys.executable, str(SCRIPTS / "setup_checks.py"), str(tmp_path / "config.json"),
+                           str(tmp_path / "results.json")], env=env, capture_output=True, text=True, timeout=3600)
+    (tmp_path / "stdout.log").write_text(done.stdout + done.stderr)
+    if not (tmp_path / "results.json").is_file():
+        pytest.fail(f"the script failed before any check:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    results = json.loads((tmp_path / "results.json").read_text())
+    for name in ("set_up_trainer_makes_the_environment", "the_environment_trains_the_toy_scene",
+                 "never_imports_torch_or_engine"):
+        _ok(results, name)
+    assert results["set_up_trainer_makes_the_environment"]["python"].startswith(str(tmp_path))
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process tree from /proc")
+@pytest.mark.parametrize("line", LINES, ids=str)
+def test_a_killed_blender_leaves_no_trainer_running(line, tmp_path, shared_data, blender_envs, extension_zip):
+    """Blender (this line's bpy) starts a two-process training and is killed (SIGKILL: no
+    handler of its runs): every process of the trainer is gone within seconds (the
+    lifeline: the pipe on their stdin closes with Blender)."""
+    from promptgs_engine.lifeline import GRACE_S
+
+    try:
+        python = blender_envs.python(line)
+    except LineUnavailable as exc:
+        pytest.skip(str(exc))
+    config = {"zip": str(extension_zip), "tmp": str(tmp_path), "python": sys.executable, "nproc": 2,
+              "tumbler": str(shared_data / "tumbler"), "timeout": 300}
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    (tmp_path / "home").mkdir()
+    env = dict(os.environ, HOME=str(tmp_path / "home"), OMP_NUM_THREADS="1")
+    blender = subprocess.Popen([python, str(SCRIPTS / "orphan_checks.py"), str(tmp_path / "config.json"),
+                                str(tmp_path / "results.json")], env=env, stdout=subprocess.DEVNULL,
+                               stderr=open(tmp_path / "blender.log", "w"))
+    pids_file = tmp_path / "trainer_pids.json"
+    deadline = time.time() + 400
+    while not pids_file.is_file() and blender.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    if not pids_file.is_file():
+        blender.kill()
+        results = (tmp_path / "results.json").read_text() if (tmp_path / "results.json").is_file() else ""
+        pytest.fail(f"Blender {line.name}: no training started: {results}\n{(tmp_path / 'blender.log').read_text()[-3000:]}")
+    pids = json.loads(pids_file.read_text())
+    assert len(pids) >= 4, pids  # launcher, torchrun, two ranks
+    start = time.time()
+    blender.kill()
+    blender.wait()
+    while any(_running(pid) for pid in pids) and time.time() - start < 60:
+        time.sleep(0.1)
+    seconds = time.time() - start
+    (tmp_path / "seconds").write_text(f"{seconds:.2f}\n")
+    left = [pid for pid in pids if _running(pid)]
+    for pid in left:
+        os.kill(pid, 9)
+    assert not left, f"still running {seconds:.0f} s after Blender was killed: {left}"
+    assert seconds < GRACE_S + 5, seconds
+
+
+def _running(pid: int) -> bool:
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return text[text.rindex(")") + 2:].split()[0] != "Z"

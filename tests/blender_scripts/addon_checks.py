@@ -9,7 +9,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import addon, bpy, check, finish, config, forbidden_modules, blocked_attempts, install, run_until_idle  # noqa: E402
+from harness import (addon, blocked_attempts, bpy, cancel_and_wait, check, config, finish, forbidden_modules,  # noqa: E402
+                     install, process_gone, run_until_idle)
 
 import numpy as np  # noqa: E402
 from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
@@ -17,7 +18,86 @@ from mathutils import Euler, Matrix, Vector  # noqa: E402
 
 TMP = Path(config["tmp"])
 scene = lambda: bpy.context.scene  # noqa: E731
-state = lambda: bpy.context.window_manager.promptgs_run  # noqa: E731
+jobs = lambda: bpy.context.window_manager.promptgs_run  # noqa: E731  (the other background jobs)
+
+
+def state():
+    """The record of the run the scene shows."""
+    return addon("training").shown_record(scene())
+
+
+class StubLayout:
+    """Records what a panel draws; checks property names and operator ids as it goes."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def __getattr__(self, name):
+        def call(*args, **kwargs):
+            if name == "prop":
+                data, prop = args[0], args[1]
+                assert prop in data.bl_rna.properties, f"{type(data).__name__} has no property {prop}"
+            elif name == "operator":
+                module, op = args[0].split(".")
+                assert hasattr(getattr(bpy.ops, module), op), f"no operator {args[0]}"
+                self.log.append(f"[{args[0]}]")
+            elif name == "label":
+                self.log.append(kwargs.get("text", ""))
+            return StubLayout(self.log)
+        return call
+
+    def __setattr__(self, name, value):
+        object.__setattr__(self, name, value)
+
+
+def panel_lines(*panels) -> list[str]:
+    """The labels (and, as [id], the operator buttons) the panels draw now."""
+    log = []
+    for cls in panels or addon("ui").CLASSES:
+        cls.draw(SimpleNamespace(layout=StubLayout(log)), bpy.context)
+    return log
+
+
+class PrefsView:
+    """The add-on preferences with a recording layout, to draw them outside a window."""
+
+    def __init__(self, log):
+        object.__setattr__(self, "layout", StubLayout(log))
+
+    def __getattr__(self, name):
+        return getattr(prefs(), name)
+
+
+def prefs_lines() -> list[str]:
+    log = []
+    type(prefs()).draw(PrefsView(log), bpy.context)
+    return log
+
+
+def drain_until(condition, timeout: float = 60.0, what: str = "the condition") -> None:
+    """Drive the follower (as its timer would) until ``condition()``."""
+    training = addon("training")
+    deadline = time.time() + timeout
+    while not condition():
+        if time.time() > deadline:
+            raise TimeoutError(f"timed out waiting for {what}")
+        training.drain_and_apply(bpy.context)
+        time.sleep(0.02)
+
+
+def live_run():
+    return addon("training").live_of(state())
+
+
+def shown_gaussians() -> tuple[str, int]:
+    """(the file the shown Gaussians hold, their count)."""
+    obj = bpy.data.objects[addon("results").GAUSSIANS]
+    return obj.get("promptgs_shows", ""), addon("display").point_count(obj)
+
+
+def npz_count(path: str, key: str = "means") -> int:
+    with np.load(path) as npz:
+        return len(npz[key])
 
 
 @check
@@ -179,9 +259,9 @@ def prompt_cube_box_in_job_file():
         bpy.ops.promptgs.train()
     except RuntimeError:
         pass
-    assert state().status == "ERROR" and f"prompt '{off.name}'" in state().message, state().message
+    assert f"prompt '{off.name}'" in scene().promptgs.start_error, scene().promptgs.start_error
     bpy.data.objects.remove(off)
-    return {"box": box, "corner_error": worst, "flat_message": state().message}
+    return {"box": box, "corner_error": worst, "flat_message": scene().promptgs.start_error}
 
 
 @check
@@ -271,7 +351,7 @@ def train_with_recorded_events_updates_objects():
 def cancel_keeps_last_snapshot():
     fake_trainer("slow")
     bpy.ops.promptgs.train()
-    out = Path(state().out_dir)
+    out = Path(state().folder)
     training = addon("training")
     deadline = time.time() + 60
     while not state().last_snapshot and time.time() < deadline:
@@ -309,9 +389,12 @@ def wrong_trainer_path_is_a_clear_error():
         raise AssertionError("train did not fail")
     except RuntimeError as exc:
         reported = str(exc)
-    st = state()
-    assert st.status == "ERROR" and "Trainer command not found: /no/such/python" in st.message, st.message
-    return {"message": st.message, "reported": reported.strip()}
+    message = scene().promptgs.start_error
+    assert "Trainer command not found: /no/such/python" in message and message in reported, (message, reported)
+    log = []
+    addon("ui").PROMPTGS_PT_train.draw(SimpleNamespace(layout=StubLayout(log)), bpy.context)
+    assert message in log, log  # the panel says it
+    return {"message": message, "reported": reported.strip()}
 
 
 @check
@@ -325,10 +408,10 @@ def dataset_without_images_is_a_clear_error():
         raise AssertionError("train did not fail")
     except RuntimeError:
         pass
-    st = state()
-    assert st.status == "ERROR" and "no such image folder" in st.message and "no_images" in st.message, st.message
+    message = scene().promptgs.start_error
+    assert "no such image folder" in message and "no_images" in message, message
     scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
-    return {"message": st.message}
+    return {"message": message}
 
 
 @check
@@ -338,16 +421,16 @@ def dataset_generation_runs_in_background():
     scene().promptgs.dataset_out = str(TMP / "generated")
     scene().promptgs.dataset_preset = "tiny"
     bpy.ops.promptgs.generate_dataset()
-    assert state().dataset_status == "RUNNING"
+    assert jobs().dataset_status == "RUNNING"
     run_until_idle(60)
-    assert state().dataset_status == "DONE", state().dataset_message
+    assert jobs().dataset_status == "DONE", jobs().dataset_message
     argv = (TMP / "generated" / "done").read_text().split()
     assert argv[argv.index("dataset"):][:4] == ["dataset", "mountain", "--preset", "tiny"], argv
     fake_trainer("crash")
     bpy.ops.promptgs.generate_dataset()
     run_until_idle(60)
-    assert state().dataset_status == "ERROR"
-    assert state().dataset_message == "promptgs: error: --preset tiny: cannot find a blender binary"
+    assert jobs().dataset_status == "ERROR"
+    assert jobs().dataset_message == "promptgs: error: --preset tiny: cannot find a blender binary"
     return {"argv": argv}
 
 
@@ -357,26 +440,26 @@ def reconstruct_from_photos_imports_the_result():
     fake_trainer("stepwise")  # the fake holds at its mapping stage until sfm_go exists
     photos = Path(config["tumbler"]) / "images"
     bpy.ops.promptgs.reconstruct(directory=str(photos))
-    assert state().sfm_status == "RUNNING", (state().sfm_status, state().sfm_message)
-    go = Path(state().sfm_out).parent / "sfm_go"
+    assert jobs().sfm_status == "RUNNING", (jobs().sfm_status, jobs().sfm_message)
+    go = Path(jobs().sfm_out).parent / "sfm_go"
     lines = []
     training = addon("training")
     deadline = time.time() + 60
     while training.drain_and_apply(bpy.context) and time.time() < deadline:
-        lines.append(state().sfm_message)
-        if state().sfm_message.startswith("mapping"):
+        lines.append(jobs().sfm_message)
+        if jobs().sfm_message.startswith("mapping"):
             go.touch()
         time.sleep(0.01)
-    assert state().sfm_status == "DONE", (state().sfm_status, state().sfm_message)
+    assert jobs().sfm_status == "DONE", (jobs().sfm_status, jobs().sfm_message)
     assert any(line.startswith(("features", "matching", "mapping")) for line in lines), lines
-    assert "76 of 77 images registered" in state().sfm_message, state().sfm_message
+    assert "76 of 77 images registered" in jobs().sfm_message, jobs().sfm_message
     root = scene().promptgs.root
-    assert Path(root["promptgs_dataset"]) == Path(state().sfm_out).resolve()
+    assert Path(root["promptgs_dataset"]) == Path(jobs().sfm_out).resolve()
     assert len([o for o in root.children if o.type == "CAMERA"]) == 77
     # back to the tumbler import for the rest
     scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
     scene().promptgs.images = "images_4"
-    return {"message": state().sfm_message, "stage_lines": sorted(set(lines))[:6]}
+    return {"message": jobs().sfm_message, "stage_lines": sorted(set(lines))[:6]}
 
 
 @check
@@ -385,26 +468,26 @@ def reconstruct_errors_and_cancel():
     photos = Path(config["tumbler"]) / "images"
     bpy.ops.promptgs.reconstruct(directory=str(photos))
     run_until_idle(60)
-    assert state().sfm_status == "ERROR" and "only 6 of 77 images registered" in state().sfm_message, state().sfm_message
+    assert jobs().sfm_status == "ERROR" and "only 6 of 77 images registered" in jobs().sfm_message, jobs().sfm_message
     fake_trainer("slow")
     bpy.ops.promptgs.reconstruct(directory=str(photos))
-    out = Path(state().sfm_out)
+    out = Path(jobs().sfm_out)
     training = addon("training")
     deadline = time.time() + 60
-    while not state().sfm_message.startswith("mapping") and time.time() < deadline:
+    while not jobs().sfm_message.startswith("mapping") and time.time() < deadline:
         training.drain_and_apply(bpy.context)
         time.sleep(0.05)
     bpy.ops.promptgs.cancel_reconstruct()
     run_until_idle(60)
-    assert state().sfm_status == "CANCELLED", (state().sfm_status, state().sfm_message)
+    assert jobs().sfm_status == "CANCELLED", (jobs().sfm_status, jobs().sfm_message)
     assert (out.parent / "sfm_cancelled").is_file(), "the reconstruction was not interrupted cleanly"
     try:
         bpy.ops.promptgs.reconstruct(directory=str(TMP / "no_such_photos"))
         raise AssertionError("reconstruct did not fail")
     except RuntimeError:
         pass
-    assert state().sfm_status == "ERROR" and "no_such_photos: not found" in state().sfm_message, state().sfm_message
-    return {"message": state().sfm_message}
+    assert jobs().sfm_status == "ERROR" and "no_such_photos: not found" in jobs().sfm_message, jobs().sfm_message
+    return {"message": jobs().sfm_message}
 
 
 @check
@@ -418,13 +501,22 @@ def load_result_reads_3dgs_ply():
     header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
     path = TMP / "result.ply"
     path.write_bytes(header.encode() + table.tobytes())
+    run = next(r for r in reversed(scene().promptgs.runs) if r.last_snapshot)  # a run with Gaussians
+    bpy.ops.promptgs.show_run(name=run.name)
     bpy.ops.promptgs.load_result(filepath=str(path))
     obj = bpy.data.objects["PromptGS Gaussians"]
+    assert scene().promptgs.shown_run == "" and obj.get("promptgs_run") is None  # shows no run now
+    kept = bpy.data.objects[addon("training").parked_name("PromptGS Gaussians", run.name)]  # the run's are kept
+    assert addon("display").point_count(kept) == npz_count(run.last_snapshot)
     display = addon("display")
     col = {name: table[:, i] for i, name in enumerate(names)}
     assert display.point_count(obj) == n
     np.testing.assert_allclose(display.get_attribute(obj, "position")[:, 0], col["x"], atol=1e-6)
     np.testing.assert_allclose(display.get_attribute(obj, "opacity"), 1 / (1 + np.exp(-col["opacity"])), atol=1e-6)
+    bpy.ops.promptgs.show_run(name=run.name)  # back to the run (the loaded PLY is kept, as "Loaded")
+    assert bpy.data.objects.get(addon("training").parked_name("PromptGS Gaussians", "Loaded")) is not None
+    assert display.point_count(bpy.data.objects["PromptGS Gaussians"]) == npz_count(run.last_snapshot)
+    obj = bpy.data.objects["PromptGS Gaussians"]
     return {"n": n}
 
 
@@ -455,29 +547,6 @@ def million_points_update():
     small = {k: v[:1000] for k, v in data.items()}
     addon("results").show_gaussians(bpy.context, small)
     return {"update_seconds_1M": round(seconds, 2), "evaluate_seconds_1M": round(draw_seconds, 2)}
-
-
-class StubLayout:
-    """Records what a panel draws; checks property names and operator ids as it goes."""
-
-    def __init__(self, log):
-        self.log = log
-
-    def __getattr__(self, name):
-        def call(*args, **kwargs):
-            if name == "prop":
-                data, prop = args[0], args[1]
-                assert prop in data.bl_rna.properties, f"{type(data).__name__} has no property {prop}"
-            elif name == "operator":
-                module, op = args[0].split(".")
-                assert hasattr(getattr(bpy.ops, module), op), f"no operator {args[0]}"
-            elif name == "label":
-                self.log.append(kwargs.get("text", ""))
-            return StubLayout(self.log)
-        return call
-
-    def __setattr__(self, name, value):
-        object.__setattr__(self, name, value)
 
 
 def shown_vertices(obj) -> int:
@@ -544,10 +613,10 @@ def propose_accept_and_reject():
     trained_before = addon("training").build_job(bpy.context, TMP / "job_propose")["prompts"]["prompts"]
     fake_trainer("ok")
     bpy.ops.promptgs.propose()
-    assert state().propose_status == "RUNNING", (state().propose_status, state().propose_message)
+    assert jobs().propose_status == "RUNNING", (jobs().propose_status, jobs().propose_message)
     run_until_idle(60)
-    assert state().propose_status == "DONE", state().propose_message
-    assert state().propose_message.startswith("2 proposals from snapshot step_000010, 1 of confidence"), state().propose_message
+    assert jobs().propose_status == "DONE", jobs().propose_message
+    assert jobs().propose_message.startswith("2 proposals from snapshot step_000010, 1 of confidence"), jobs().propose_message
     argv = json.loads((run / "propose" / "argv.json").read_text())
     argv = argv[argv.index("propose"):]
     assert argv[:4] == ["propose", str(run), "--out", str(run / "propose" / "proposals.json")], argv
@@ -593,17 +662,17 @@ def propose_accept_and_reject():
     fake_trainer("crash")
     bpy.ops.promptgs.propose()
     run_until_idle(60)
-    assert state().propose_status == "ERROR", state().propose_message
-    assert state().propose_message == f"promptgs: error: {run}: the run has no point_cloud.ply yet", state().propose_message
+    assert jobs().propose_status == "ERROR", jobs().propose_message
+    assert jobs().propose_message == f"promptgs: error: {run}: the run has no point_cloud.ply yet", jobs().propose_message
     scene().promptgs.preview_run = str(TMP)
     try:
         bpy.ops.promptgs.propose()
         raise AssertionError("propose did not fail")
     except RuntimeError:
         pass
-    assert "not a PromptGS run folder" in state().propose_message, state().propose_message
+    assert "not a PromptGS run folder" in jobs().propose_message, jobs().propose_message
     scene().promptgs.preview_run = ""
-    return {"message": state().propose_message}
+    return {"message": jobs().propose_message}
 
 
 def edges_in_box_frame(edges: np.ndarray, box: dict, root) -> np.ndarray:
@@ -689,7 +758,7 @@ def training_proposals_become_proposed_cubes():
     settings = scene().promptgs
     settings.preset, settings.iterations, settings.propose_prompts = "CUSTOM", 30, True
     bpy.ops.promptgs.train()
-    out = Path(state().out_dir)
+    out = Path(state().folder)
     first_job = json.loads(Path(state().job_path).read_text())
     assert first_job["propose_prompts"] is True
     counts, seen_running = set(), False
@@ -709,64 +778,367 @@ def training_proposals_become_proposed_cubes():
         box = box_of(cube, root)
         np.testing.assert_allclose(box["center"], entry["center"], atol=1e-5)
         np.testing.assert_allclose(box["size"], entry["size"], atol=1e-5)
-    assert state().propose_status == "DONE"
-    assert state().propose_message == ("2 proposals from training step 15, 1 of confidence ≥ 0.3 "
-                                       "(the run trains 1 box around them)"), state().propose_message
+    assert jobs().propose_status == "DONE"
+    assert jobs().propose_message == ("2 proposals from training step 15, 1 of confidence ≥ 0.3 "
+                                       "(the run trains 1 box around them)"), jobs().propose_message
     names_after_first = proposed_names()
     training.drain_and_apply(bpy.context)
     assert proposed_names() == names_after_first
     # accept the first, train again: the same proposals come back, the accepted one not twice
     accepted = proposals.accept(bpy.context, cubes[0])
     bpy.ops.promptgs.train()
-    second = Path(state().out_dir)
+    second = Path(state().folder)
     run_until_idle(60)
     assert second != out and state().status == "DONE", (state().status, state().message)
     job = json.loads(Path(state().job_path).read_text())
     assert len(job["prompts"]["prompts"]) == len(first_job["prompts"]["prompts"]) + 1  # the accepted cube is trained
     cubes = proposals.proposed_objects(scene())
     assert len(cubes) == 1 and abs(cubes[0]["promptgs_confidence"] - 0.21) < 1e-6, [c.name for c in cubes]
-    assert state().propose_message.startswith("1 proposals from training step 15, 0 of confidence ≥ 0.3, "
-                                              "1 already inside prompts"), state().propose_message
+    assert jobs().propose_message.startswith("1 proposals from training step 15, 0 of confidence ≥ 0.3, "
+                                              "1 already inside prompts"), jobs().propose_message
     assert len(addon("overlay").proposed_edges(bpy.context)[0]) + len(addon("overlay").proposed_edges(bpy.context)[1]) == 24
     # a run without proposing leaves the proposed cubes as they are
     settings.propose_prompts = False
     bpy.ops.promptgs.train()
     run_until_idle(60)
-    assert not (Path(state().out_dir) / "proposals.json").exists()
+    assert not (Path(state().folder) / "proposals.json").exists()
     assert len(proposals.proposed_objects(scene())) == 1
     for obj in proposals.proposed_objects(scene()) + [accepted]:
         bpy.data.objects.remove(obj)
     proposals.update_markers(bpy.context)
     settings.preset = "STANDARD"
-    return {"message": state().propose_message}
+    return {"message": jobs().propose_message}
 
 
 @check
 def panels_draw_in_every_state():
-    ui = addon("ui")
     labels = {}
-    for status in ("IDLE", "RUNNING", "ERROR", "DONE"):
-        state().status = state().sfm_status = state().preview_status = state().propose_status = status
-        state().error_lines = "line one\nline two"
-        log = []
-        for cls in ui.CLASSES:
-            cls.draw(SimpleNamespace(layout=StubLayout(log)), bpy.context)
-        labels[status] = log
+    record = state()
+    for status in ("IDLE", "RUNNING", "ERROR", "DONE", "INTERRUPTED"):
+        jobs().sfm_status = jobs().preview_status = jobs().propose_status = jobs().setup_status = \
+            status if status in ("IDLE", "RUNNING", "ERROR", "DONE") else "IDLE"
+        if status != "IDLE":
+            record.status = status
+        record.error_lines = "line one\nline two"
+        labels[status] = panel_lines() + prefs_lines()  # the panels, and the preferences with Set Up
     assert "line two" in labels["ERROR"]
     return {"labels": labels["ERROR"][:12]}
 
 
 @check
-def loading_a_file_stops_the_trainer():
+def runs_need_no_modal_operator():
+    """Training is followed by a timer: no operator of the add-on is modal (notify aside,
+    which lives for one timer event after a job), no window has a modal handler while a
+    run goes (Blender's autosave waits while one has: wm_files.cc, wm_autosave_timer), an
+    Esc changes nothing, and the file saves while it trains."""
+    training, operators = addon("training"), addon("operators")
     fake_trainer("slow")
+    window = bpy.context.window_manager.windows[0]
+    with bpy.context.temp_override(window=window):
+        assert bpy.ops.promptgs.train("INVOKE_DEFAULT") == {"FINISHED"}
+    modal = [cls.bl_idname for cls in operators.CLASSES if hasattr(cls, "modal") and cls.bl_idname != "promptgs.notify"]
+    assert not modal, modal
+    drain_until(lambda: state().snapshot_step > 0, what="a snapshot")
+    assert bpy.app.timers.is_registered(training._timer), "the run is not followed by a timer"
+    handlers = {w.as_pointer(): [op.bl_idname for op in w.modal_operators] for w in bpy.context.window_manager.windows}
+    assert not any(handlers.values()), handlers
+    # Esc: nothing of the add-on listens to keys (no modal operator, no key map item)
+    keymaps = bpy.context.window_manager.keyconfigs.addon
+    bound = [item.idname for km in (keymaps.keymaps if keymaps else []) for item in km.keymap_items
+             if item.idname.startswith("promptgs.")]
+    assert not bound, bound
+    esc = "simulated" if bpy.app.use_event_simulate else "no event simulation in background"
+    if bpy.app.use_event_simulate:  # a Blender binary started with --enable-event-simulate
+        window.event_simulate("ESC", "PRESS")
+        window.event_simulate("ESC", "RELEASE")
+    step = state().snapshot_step
+    drain_until(lambda: state().snapshot_step > step, what="the next snapshot after Esc")
+    assert state().status == "RUNNING" and not live_run().progress.cancel_requested, (state().status, state().message)
+    # the file saves while the run goes; it records the run
+    saved = TMP / "during_run.blend"
+    assert bpy.ops.wm.save_as_mainfile(filepath=str(saved), copy=True) == {"FINISHED"}
+    assert saved.is_file() and saved.stat().st_size > 10_000
+    name = state().name
+    bpy.ops.promptgs.cancel()
+    run_until_idle(60)
+    assert state().status == "CANCELLED", (state().status, state().message)
+    return {"esc": esc, "saved_bytes": saved.stat().st_size, "run": name}
+
+
+@check
+def second_run_keeps_the_first_and_runs_switch():
+    """A new run keeps the shown run's objects (hidden, under its name) unless Replace
+    Shown Run; the eye in the runs list shows one run or the other."""
+    training, settings = addon("training"), scene().promptgs
+    fake_trainer("ok")
+    settings.preset, settings.replace_shown = "CUSTOM", False
+    settings.iterations = 30
     bpy.ops.promptgs.train()
-    run = addon("training").current_run()
-    time.sleep(0.3)
-    assert run.running
-    bpy.ops.wm.read_homefile(use_empty=True)
-    assert not run.running and run.process.returncode is not None
-    assert addon("training").current_run() is None
-    return {"returncode": run.process.returncode}
+    run_until_idle(60)
+    first = state().name
+    first_obj = bpy.data.objects[addon("results").GAUSSIANS]
+    assert shown_gaussians()[1] == 400
+    settings.iterations = 20
+    bpy.ops.promptgs.train()
+    run_until_idle(60)
+    second = state().name
+    assert second != first and settings.shown_run == second
+    kept = bpy.data.objects[training.parked_name(addon("results").GAUSSIANS, first)]
+    assert kept == first_obj and addon("display").point_count(kept) == 400  # untouched by the second run
+    assert kept.users_collection[0].hide_viewport and kept.users_collection[0].name == f"PromptGS {first}"
+    assert shown_gaussians()[1] == 300 and bpy.data.objects[addon("results").GAUSSIANS] != first_obj
+    bpy.ops.promptgs.show_run(name=first)
+    assert settings.shown_run == first and shown_gaussians()[1] == 400
+    assert addon("display").point_count(bpy.data.objects[training.parked_name(addon("results").GAUSSIANS, second)]) == 300
+    assert f"[promptgs.show_run]" in panel_lines(addon("ui").PROMPTGS_PT_runs)
+    # Replace Shown Run: the third run takes the first run's objects over
+    settings.replace_shown, settings.iterations = True, 10
+    bpy.ops.promptgs.train()
+    run_until_idle(60)
+    third = state().name
+    assert bpy.data.objects[addon("results").GAUSSIANS] == first_obj and shown_gaussians()[1] == 200
+    assert bpy.data.objects.get(training.parked_name(addon("results").GAUSSIANS, first)) is None
+    bpy.ops.promptgs.show_run(name=first)  # its objects were replaced: loaded again from its folder
+    assert shown_gaussians() == (settings.runs[first].last_snapshot, 400)
+    for name in (second, third):
+        bpy.ops.promptgs.remove_run(name=name)
+    assert [r.name for r in settings.runs if r.name in (second, third)] == []
+    assert bpy.data.objects.get(training.parked_name(addon("results").GAUSSIANS, second)) is None
+    settings.replace_shown = False
+    return {"runs": [r.name for r in settings.runs]}
+
+
+@check
+def undo_after_a_snapshot_leaves_a_consistent_scene():
+    """Runs are outside undo: Ctrl+Z takes back the user's edit, and the run's record and
+    the shown objects are what the run is now, while it trains, after it ended, and when
+    the undo goes back to before the run started."""
+    training, results = addon("training"), addon("results")
+    fake_trainer("slow")
+    bpy.ops.promptgs.add_prompt()
+    cube = bpy.context.active_object.name
+    bpy.data.objects[cube].location = (0.0, 0.0, 0.0)
+    bpy.ops.ed.undo_push(message="before training")
+    bpy.ops.promptgs.train()
+    name = state().name
+    drain_until(lambda: state().snapshot_step >= 10, what="a first snapshot")
+    bpy.ops.ed.undo_push(message="before the edit")
+    bpy.data.objects[cube].location = (0.5, 0.0, 0.0)
+    bpy.ops.ed.undo_push(message="moved the cube")
+    at_edit = state().snapshot_step
+    drain_until(lambda: state().snapshot_step >= at_edit + 20, what="newer snapshots")
+
+    def consistent(expect_status: str) -> dict:
+        record = scene().promptgs.runs[name]
+        entry = training._live.get(record.folder) or training._ended[record.folder]
+        progress = entry.progress
+        assert record.status == expect_status == progress.status, (record.status, progress.status)
+        assert record.snapshot_step == progress.snapshot_step and record.last_snapshot == progress.last_snapshot
+        shown = training.shown_record(scene())
+        path, n = shown_gaussians()
+        assert path == training.target_of(shown)[0] and n == npz_count(path), (path, n, shown.name)
+        field = bpy.data.objects[results.LOSS_FIELD]
+        assert addon("display").point_count(field) == npz_count(path, "field_centers")
+        assert bpy.data.objects[results.GAUSSIANS].get("promptgs_run") == shown.name
+        return {"step": record.snapshot_step, "shown": shown.name}
+
+    bpy.ops.ed.undo()  # back to before the edit: the cube where it was, the run as it is now
+    assert tuple(bpy.data.objects[cube].location) == pytest_approx((0.0, 0.0, 0.0))
+    during = consistent("RUNNING")
+    assert during["shown"] == name and during["step"] >= at_edit + 20
+    bpy.ops.ed.redo()
+    assert tuple(bpy.data.objects[cube].location) == pytest_approx((0.5, 0.0, 0.0))
+    consistent("RUNNING")
+    bpy.ops.promptgs.cancel()
+    run_until_idle(60)
+    bpy.ops.ed.undo_push(message="after the run")
+    bpy.ops.ed.undo()
+    bpy.ops.ed.undo()  # the record of that step said RUNNING, at an older snapshot
+    after = consistent("CANCELLED")
+    bpy.ops.ed.undo()  # before the run started: its record comes back
+    assert scene().promptgs.runs.get(name) is not None, [r.name for r in scene().promptgs.runs]
+    before = consistent("CANCELLED")
+    bpy.data.objects.remove(bpy.data.objects[cube])
+    bpy.ops.promptgs.show_run(name=name)
+    return {"during": during, "after": after, "before_start": before}
+
+
+@check
+def the_panel_tells_what_went_wrong():
+    """The panel shows the trainer's last output line; every failure is one line with the
+    log's path (a crash at start-up, an unreadable snapshot); the end of a run is a
+    report in the status bar whether or not the panel is open."""
+    training = addon("training")
+    settings = scene().promptgs
+    settings.preset, settings.iterations = "CUSTOM", 30
+    fake_trainer("badsnapshot")
+    bpy.ops.promptgs.train()
+    run_until_idle(60)
+    record = state()
+    assert record.status == "DONE", (record.status, record.message)
+    assert record.warning.startswith("step_000030.npz: cannot read the snapshot") and record.log_path in record.warning, record.warning
+    assert shown_gaussians()[0] == str(Path(record.folder) / "snapshots" / "step_000020.npz")  # the last good one
+    lines = panel_lines(addon("ui").PROMPTGS_PT_train)
+    assert record.warning in lines and f"Log: {record.log_path}" in lines, lines
+    assert record.last_output.startswith("fake trainer: "), record.last_output  # its newest output line
+    assert record.last_output in lines, lines
+    assert training.notices[-1] == ("INFO", f"PromptGS {record.name}: Done: PSNR 20.00 dB"), training.notices[-1]
+    fake_trainer("crash")
+    bpy.ops.promptgs.train()
+    run_until_idle(60)
+    record = state()
+    assert record.status == "ERROR" and record.message == "RuntimeError: the fake trainer crashed", record.message
+    lines = panel_lines(addon("ui").PROMPTGS_PT_train)
+    assert record.message in lines and f"Log: {record.log_path}" in lines and Path(record.log_path).is_file(), lines
+    assert training.notices[-1] == ("ERROR", f"PromptGS {record.name}: RuntimeError: the fake trainer crashed")
+    return {"warning": state().warning, "notice": list(training.notices[-1])}
+
+
+@check
+def buttons_grey_out_when_they_cannot_run():
+    """poll(): what cannot run now is greyed out (and refused from a script)."""
+    ops = bpy.ops.promptgs
+    settings = scene().promptgs
+    fake_trainer("slow")
+    idle = {"train": ops.train.poll(), "cancel": ops.cancel.poll(), "cancel_reconstruct": ops.cancel_reconstruct.poll()}
+    assert idle == {"train": True, "cancel": False, "cancel_reconstruct": False}, idle
+    bpy.ops.promptgs.train()
+    drain_until(lambda: state().status == "RUNNING", what="the run to start")
+    busy = {"train": ops.train.poll(), "cancel": ops.cancel.poll(), "resume": ops.resume.poll()}
+    assert busy == {"train": False, "cancel": True, "resume": False}, busy
+    bpy.ops.promptgs.cancel()
+    run_until_idle(60)
+    assert ops.train.poll() and not ops.cancel.poll()
+    root, dataset, camera = settings.root, settings.dataset, scene().camera
+    settings.root, settings.dataset, scene().camera = None, "", None
+    try:
+        no_dataset = ops.train.poll()
+        no_camera = ops.render_preview.poll()
+    finally:
+        settings.root, settings.dataset, scene().camera = root, dataset, camera
+    assert not no_dataset and not no_camera, (no_dataset, no_camera)
+    assert not ops.accept_proposal.poll()  # no proposed cube
+    # Cancel asks first when more than a minute since the last checkpoint would be trained
+    # again (its dialog is Blender's invoke_confirm, with an icon it offers)
+    record = SimpleNamespace(step=1500, elapsed_s=300.0, checkpoint_every=1000, folder="")
+    assert addon("training").unsaved_seconds(record) == 100.0 > addon("training").CONFIRM_AFTER_S
+    record.step = 2100
+    assert addon("training").unsaved_seconds(record) < addon("training").CONFIRM_AFTER_S
+    icons = bpy.types.WindowManager.bl_rna.functions["invoke_confirm"].parameters["icon"].enum_items.keys()
+    assert {"WARNING", "QUESTION"} <= set(icons), icons
+    return {"idle": idle, "busy": busy}
+
+
+@check
+def a_picked_photo_means_its_folder():
+    reconstruct = addon("reconstruct")
+    photos = Path(config["tumbler"]) / "images"
+    photo = sorted(photos.iterdir())[0]
+    video = TMP / "clip.MP4"
+    video.write_bytes(b"\0" * 16)
+    assert reconstruct.source_of(photo, photos.parent) == photos
+    assert reconstruct.source_of(video, TMP) == video
+    assert reconstruct.source_of(None, photos) == photos
+    fake_trainer("crash")  # only what it is given matters here
+    bpy.ops.promptgs.reconstruct(filepath=str(photo), directory=str(photos))
+    assert Path(jobs().sfm_out).name.startswith("images-sfm-"), jobs().sfm_out
+    run_until_idle(60)
+    return {"sfm_out": jobs().sfm_out}
+
+
+@check
+def find_and_test_run_in_the_background():
+    """Find and Test return at once (the UI does not wait for the interpreters they run)
+    and the answer arrives through the follower."""
+    training = addon("training")
+    slow = config["slow_python"]  # the test's Python, after a 2 s sleep
+    prefs().python = slow
+    start = time.time()
+    bpy.ops.promptgs.test_trainer()
+    test_seconds = time.time() - start
+    assert jobs().probe_status == "RUNNING" and test_seconds < 1.0, (jobs().probe_status, test_seconds)
+    run_until_idle(120)
+    assert jobs().probe_status == "DONE" and prefs().probe_result.startswith("promptgs_engine "), prefs().probe_result
+    assert "backends: cpu" in prefs().probe_result, prefs().probe_result
+    prefs().python = ""
+    os.environ["PROMPTGS_PYTHON"] = slow
+    start = time.time()
+    bpy.ops.promptgs.find_trainer()
+    find_seconds = time.time() - start
+    assert jobs().find_status == "RUNNING" and find_seconds < 1.0, (jobs().find_status, find_seconds)
+    run_until_idle(120)
+    del os.environ["PROMPTGS_PYTHON"]
+    assert jobs().find_status == "DONE" and prefs().python == slow, (jobs().find_message, prefs().python)
+    return {"test_seconds": round(test_seconds, 3), "find_seconds": round(find_seconds, 3), "probe": prefs().probe_result}
+
+
+@check
+def set_up_trainer_says_what_it_needs():
+    """Set Up Trainer refuses what cannot work, in one line: no engine source, a folder
+    that is not a checkout, no C++ compiler to build it (PATH without one). Its default
+    folder is in the extension's user folder."""
+    training, trainer = addon("training"), addon("trainer")
+    p = prefs()
+    p.setup_folder, p.setup_base, p.setup_source = "", sys.executable, ""
+    try:
+        bpy.ops.promptgs.setup_trainer()
+        raise AssertionError("set-up did not fail")
+    except RuntimeError:
+        pass
+    assert jobs().setup_status == "ERROR" and jobs().setup_message.startswith("Choose the engine source"), jobs().setup_message
+    p.setup_source = str(TMP)
+    try:
+        bpy.ops.promptgs.setup_trainer()
+    except RuntimeError:
+        pass
+    assert jobs().setup_message == f"{TMP}: no pyproject.toml (not a PromptGS checkout)", jobs().setup_message
+    default = training.setup_folder(bpy.context)
+    assert default == Path(bpy.utils.extension_path_user(addon("training").__package__, path="trainer-env"))
+    assert str(default).startswith(str(Path(config["home"]))), default  # the user's profile
+    empty_path = TMP / "path_without_compilers"
+    empty_path.mkdir(exist_ok=True)
+    p.setup_source, p.setup_folder = config["repo"], str(TMP / "trainer-env")
+    saved = {key: os.environ.get(key) for key in ("PATH", "CXX")}
+    os.environ["PATH"], os.environ["CXX"] = str(empty_path), ""
+    try:
+        bpy.ops.promptgs.setup_trainer()
+        assert jobs().setup_status == "RUNNING"
+        run_until_idle(60)
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+    assert jobs().setup_status == "ERROR", (jobs().setup_status, jobs().setup_message)
+    assert jobs().setup_message.startswith("No C++ compiler found"), jobs().setup_message
+    assert not (TMP / "trainer-env" / "pyvenv.cfg").exists()  # nothing made
+    assert training.notices[-1][0] == "ERROR" and "No C++ compiler found" in training.notices[-1][1]
+    assert trainer.venv_python(TMP / "v") == TMP / "v" / "bin" / "python"
+    return {"message": jobs().setup_message, "default_folder": str(default)}
+
+
+@check
+def cancel_ends_every_process_of_the_trainer():
+    """Cancel ends the trainer and the processes below it, also those in their own
+    sessions that ignore SIGINT (and SIGTERM), as torchrun's ranks are, within the cancel's
+    bounded wait."""
+    training = addon("training")
+    fake_trainer("tree")
+    bpy.ops.promptgs.train()
+    folder = Path(state().folder)
+    drain_until(lambda: (folder / "tree.json").is_file() and state().status == "RUNNING", what="the ranks")
+    pids = [training.current_run().pid] + json.loads((folder / "tree.json").read_text())
+    assert not any(process_gone(pid) for pid in pids)
+    training.CANCEL_TIMEOUT_S = 1.0
+    try:
+        seconds, left = cancel_and_wait(pids, 15)
+    finally:
+        training.CANCEL_TIMEOUT_S = 20.0
+    assert not left, left
+    assert state().status == "CANCELLED", (state().status, state().message)
+    assert seconds < 1.0 + 5.0 + 5.0 + 2.0, seconds  # the wait, SIGTERM's 5 s, SIGKILL
+    return {"processes": len(pids), "cancel_seconds": round(seconds, 2)}
 
 
 @check
@@ -852,6 +1224,87 @@ def proposed_cubes_draw_orange_pixels():
     assert all(hits) and not inside and n_orange > 100, (hits, inside, n_orange)
     assert after == 0, after
     return {"drawn": True, "orange_pixels": n_orange, "renderer": gpu.platform.renderer_get()}
+
+
+@check
+def loading_a_file_detaches_the_run():
+    """Opening another file while a run trains lets it go on, detached (every file's
+    panel lists it); opening the file whose scene records it attaches it again, with
+    the progress it made meanwhile."""
+    training = addon("training")
+    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
+    fake_trainer("slow")
+    bpy.ops.promptgs.train()
+    name, folder = state().name, state().folder
+    run = training.current_run()
+    drain_until(lambda: state().snapshot_step >= 10, what="a snapshot")
+    saved = TMP / "with_a_run.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(saved))
+    saved_step = state().step
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert run.running and training.current_run() is None and not scene().promptgs.runs
+    assert [live.folder for live in training.detached_runs()] == [folder]
+    detached = training._live[folder]
+    step = detached.progress.snapshot_step
+    drain_until(lambda: detached.progress.snapshot_step >= step + 20, what="progress while detached")
+    lines = panel_lines(addon("ui").PROMPTGS_PT_runs)
+    assert "[promptgs.attach_run]" in lines and "[promptgs.cancel_detached]" in lines, lines
+    bpy.ops.wm.open_mainfile(filepath=str(saved))
+    assert state().name == name and training.current_run() is run and not training.detached_runs()
+    assert state().step > saved_step and state().snapshot_step >= step + 20, (state().step, saved_step)
+    assert shown_gaussians()[0] == detached.progress.last_snapshot  # the newest, shown at once
+    bpy.ops.promptgs.cancel()
+    run_until_idle(60)
+    assert state().status == "CANCELLED" and not run.running
+    return {"saved_step": saved_step, "attached_step": state().step}
+
+
+def settings_shown() -> str:
+    return scene().promptgs.shown_run
+
+
+@check
+def reopened_file_shows_result_or_resume():
+    """A saved file opened after Blender quit: a finished run shows its result, a run that
+    was training shows Resume, which continues it from its last checkpoint to its end."""
+    training = addon("training")
+    settings = scene().promptgs
+    settings.preset, settings.iterations, settings.checkpoint_every = "CUSTOM", 60, 10
+    fake_trainer("ply")
+    bpy.ops.promptgs.train()
+    run_until_idle(60)
+    finished = state().name
+    assert state().status == "DONE" and state().result_ply and shown_gaussians()[0] == state().result_ply
+    fake_trainer("slow")
+    bpy.ops.promptgs.train()
+    stopped = state().name
+    drain_until(lambda: state().snapshot_step >= 20, what="a checkpoint and a snapshot")
+    saved = TMP / "reopen.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(saved))
+    training.stop_all()  # what quitting Blender does: the trainer stops, its checkpoint stays
+    training._ended.clear()  # and a new Blender knows nothing of this one's runs
+    bpy.ops.wm.open_mainfile(filepath=str(saved))
+    runs = scene().promptgs.runs
+    assert runs[finished].status == "DONE" and runs[stopped].status == "INTERRUPTED", \
+        (runs[finished].status, runs[stopped].status)
+    assert settings_shown() == stopped and training.resumable(runs[stopped])
+    lines = panel_lines(addon("ui").PROMPTGS_PT_train)
+    assert "[promptgs.resume]" in lines and runs[stopped].message in lines, lines
+    checkpoint = int((Path(runs[stopped].folder) / "ckpt.pt").read_text())
+    bpy.ops.promptgs.show_run(name=finished)
+    assert shown_gaussians()[0] == runs[finished].result_ply
+    fake_trainer("ply")
+    bpy.ops.promptgs.resume(name=stopped)
+    assert settings_shown() == stopped and state().status == "STARTING"
+    run_until_idle(60)
+    record = state()
+    assert record.status == "DONE" and record.step == 60, (record.status, record.message, record.step)
+    assert int((Path(record.folder) / "resumed_at").read_text()) == checkpoint >= 10
+    assert shown_gaussians()[0] == record.result_ply
+    log = Path(record.log_path).read_text()
+    assert "slow run into" in log and f"resumed at step {checkpoint}" in log  # one log, both parts
+    scene().promptgs.checkpoint_every = 1000
+    return {"checkpoint": checkpoint, "finished": finished, "resumed": stopped}
 
 
 @check

@@ -12,7 +12,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import addon, bpy, check, finish, config, forbidden_modules, install, run_until_idle  # noqa: E402
+from harness import (addon, bpy, cancel_and_wait, check, config, finish, forbidden_modules, install,  # noqa: E402
+                     process_tree, run_until_idle)
 
 import bmesh  # noqa: E402
 import numpy as np  # noqa: E402
@@ -20,7 +21,12 @@ from mathutils import Vector  # noqa: E402
 
 TMP = Path(config["tmp"])
 scene = lambda: bpy.context.scene  # noqa: E731
-state = lambda: bpy.context.window_manager.promptgs_run  # noqa: E731
+jobs = lambda: bpy.context.window_manager.promptgs_run  # noqa: E731
+
+
+def state():
+    """The record of the run the scene shows."""
+    return addon("training").shown_record(scene())
 
 
 def prefs():
@@ -64,7 +70,8 @@ def setup():
             bpy.data.objects.remove(bpy.data.objects[name])
     prefs().python = config["python"]
     prefs().output_dir = str(TMP / "runs")
-    bpy.ops.promptgs.test_trainer()
+    bpy.ops.promptgs.test_trainer()  # in the background: the follower brings its answer
+    run_until_idle(120)
     probe = prefs().probe_result
     bpy.ops.promptgs.import_colmap(directory=config["tumbler"], images="images_4")
     settings = scene().promptgs
@@ -132,7 +139,7 @@ def train_real_trainer():
     settings.iterations = config["iterations"]
     settings.snapshot_every = config["snapshot_every"]
     bpy.ops.promptgs.train()
-    info = {"out": state().out_dir}
+    info = {"out": state().folder}
 
     def first_snapshot_render():
         if "render_s" not in info and "PromptGS Gaussians" in bpy.data.objects:
@@ -158,7 +165,7 @@ def preview_now() -> dict:
     """Render Preview of the active camera, driven to its end; the outcome and the pixels."""
     bpy.ops.promptgs.render_preview()
     run_until_idle(config["timeout"])
-    st = state()
+    st = jobs()
     assert st.preview_status == "DONE", (st.preview_status, st.preview_message)
     image = bpy.data.images["PromptGS Preview"]
     return {"message": st.preview_message, "size": list(image.size)}
@@ -178,7 +185,7 @@ def preview_dataset_camera():
     both = bpy.data.images["PromptGS Preview | Image"]
     assert tuple(both.size) == (2 * image.size[0], image.size[1]), tuple(both.size)
     np.save(TMP / "preview_side_by_side.npy", preview.pixels(both)[..., :3])
-    info["camera_file"] = str(Path(state().out_dir) / "preview" / "camera.json")
+    info["camera_file"] = str(Path(state().folder) / "preview" / "camera.json")
     return info
 
 
@@ -207,7 +214,7 @@ def preview_user_camera():
     info = preview_now()
     image = bpy.data.images["PromptGS Preview"]
     assert tuple(image.size) == (240, 320), tuple(image.size)
-    sent = json.loads((Path(state().out_dir) / "preview" / "camera.json").read_text())
+    sent = json.loads((Path(state().folder) / "preview" / "camera.json").read_text())
     K, w2c = np.array(sent["K"]), np.array(sent["world_to_camera"])
     points = next(o for o in bpy.data.objects if o.name.startswith("PromptGS Sparse Points"))
     co = addon("display").get_attribute(points, "position")[::50]
@@ -251,6 +258,74 @@ def cancel_real_trainer():
     np.testing.assert_allclose(addon("display").get_attribute(obj, "position"), means, atol=1e-6)
     return {"message": st.message, "returncode": run.process.returncode, "snapshot_step": st.snapshot_step,
             "last_output": st.last_output}
+
+
+def drain_until(condition, timeout: float, what: str) -> None:
+    training = addon("training")
+    deadline = time.time() + timeout
+    while not condition():
+        if time.time() > deadline:
+            raise TimeoutError(f"timed out waiting for {what} ({state().status}: {state().message})")
+        training.drain_and_apply(bpy.context)
+        time.sleep(0.05)
+
+
+@check
+def resume_reaches_the_uninterrupted_result():
+    """A run saved while it trains and reopened after Blender quit shows Resume; resumed,
+    it ends with the very PLY of the same run trained without a stop (the CPU backend
+    adds in a fixed order)."""
+    training = addon("training")
+    settings = scene().promptgs
+    settings.iterations, settings.snapshot_every, settings.checkpoint_every = config["resume_iterations"], 10, 10
+    bpy.ops.promptgs.train()
+    straight = state().name
+    run_until_idle(config["timeout"])
+    assert state().status == "DONE", (state().status, state().message, state().error_lines)
+    straight_ply, straight_psnr = Path(state().result_ply), state().psnr
+    bpy.ops.promptgs.train()
+    stopped = state().name
+    drain_until(lambda: state().snapshot_step >= 20, config["timeout"], "the snapshot after a checkpoint")
+    saved = TMP / "resume.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(saved))
+    training.stop_all()  # Blender quits: the trainer stops, its checkpoint stays
+    training._ended.clear()  # a new Blender knows nothing of the old one's runs
+    bpy.ops.wm.open_mainfile(filepath=str(saved))
+    record = scene().promptgs.runs[stopped]
+    assert record.status == "INTERRUPTED" and training.resumable(record), (record.status, record.message)
+    folder = Path(record.folder)
+    assert not (folder / "point_cloud.ply").exists()
+    bpy.ops.promptgs.resume(name=stopped)
+    run_until_idle(config["timeout"])
+    record = scene().promptgs.runs[stopped]
+    assert record.status == "DONE", (record.status, record.message, record.error_lines)
+    log = (folder / "train.log").read_text()
+    resumed_at = int(log.split("resumed at step ")[1].split()[0])
+    assert resumed_at >= 10 and resumed_at % 10 == 0, resumed_at
+    assert Path(record.result_ply).read_bytes() == straight_ply.read_bytes(), "the resumed run ended elsewhere"
+    assert record.psnr == straight_psnr
+    assert addon("training").shown_path() == record.result_ply
+    return {"resumed_at": resumed_at, "psnr": record.psnr, "straight": straight, "resumed": stopped}
+
+
+@check
+def multi_rank_cancel_leaves_no_process():
+    """Cancel of a two-process run (launcher, torchrun, two ranks in their own sessions)
+    leaves none of them running."""
+    training = addon("training")
+    settings = scene().promptgs
+    settings.iterations, settings.snapshot_every, settings.nproc = 5000, 5, 2
+    try:
+        bpy.ops.promptgs.train()
+        drain_until(lambda: state().step > 0, config["timeout"], "the first step of both ranks")
+        tree = process_tree(training.current_run().pid)
+        assert len(tree) >= 4, tree  # launcher, torchrun, two ranks
+        seconds, left = cancel_and_wait(tree, 30)
+    finally:
+        settings.nproc = 1
+    assert not left, left
+    assert state().status == "CANCELLED", (state().status, state().message)
+    return {"processes": len(tree), "cancel_seconds": round(seconds, 2), "message": state().message}
 
 
 @check
