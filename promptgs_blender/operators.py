@@ -1,11 +1,11 @@
-"""Operators: import, prompts, train/cancel, load result, trainer check, dataset generation."""
+"""Operators: import, prompts, train/cancel, load result, export Gaussians, trainer check, dataset generation."""
 
 import time
 from pathlib import Path
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
-from bpy_extras.io_utils import ImportHelper
+from bpy_extras.io_utils import ExportHelper, ImportHelper
 from mathutils import Vector
 
 from . import colmap, display, importer, plyio, prompts, proposals, reconstruct, results, training
@@ -244,6 +244,30 @@ class PROMPTGS_OT_load_result(bpy.types.Operator, ImportHelper):
         return {"FINISHED"}
 
 
+class PROMPTGS_OT_export_gaussians(bpy.types.Operator, ExportHelper):
+    """Write the Gaussians, as you edited them (deleted, cropped), to a standard 3DGS PLY in dataset coordinates"""
+
+    bl_idname = "promptgs.export_gaussians"
+    bl_label = "Export Gaussians"
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    start_from: BoolProperty(name="Train From It", default=True,
+                             description="Make it the Start From file of the next training")
+
+    def execute(self, context):
+        path = Path(bpy.path.abspath(self.filepath))
+        try:
+            n = results.export_gaussians(context, path)
+        except (ValueError, plyio.PlyError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        if self.start_from:
+            context.scene.promptgs.init_ply = str(path)
+        self.report({"INFO"}, f"Wrote {n} Gaussians to {path}")
+        return {"FINISHED"}
+
+
 class PROMPTGS_OT_find_trainer(bpy.types.Operator):
     """Look for a Python that has promptgs_engine installed"""
 
@@ -351,6 +375,7 @@ def menu_import(self, context):
 CLASSES = (
     PROMPTGS_OT_import_colmap, PROMPTGS_OT_use_camera, PROMPTGS_OT_add_prompt, PROMPTGS_OT_select_prompt,
     PROMPTGS_OT_remove_prompt, PROMPTGS_OT_propose, PROMPTGS_OT_accept_proposal, PROMPTGS_OT_train, PROMPTGS_OT_cancel, PROMPTGS_OT_load_result,
+    PROMPTGS_OT_export_gaussians,
     PROMPTGS_OT_find_trainer, PROMPTGS_OT_test_trainer, PROMPTGS_OT_generate_dataset,
     PROMPTGS_OT_render_preview, PROMPTGS_OT_reconstruct, PROMPTGS_OT_cancel_reconstruct,
 )

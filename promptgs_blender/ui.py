@@ -116,6 +116,7 @@ class PROMPTGS_PT_train(PromptGSPanel, bpy.types.Panel):
         col.prop(settings, "backend")
         col.prop(settings, "nproc")
         col.prop(settings, "snapshot_every")
+        col.prop(settings, "init_ply")
         running = training.current_run() is not None and state.status in ("STARTING", "RUNNING", "CANCELLING")
         if running:
             layout.operator("promptgs.cancel", icon="CANCEL")
@@ -181,6 +182,7 @@ class PROMPTGS_PT_display(PromptGSPanel, bpy.types.Panel):
         layout.prop(settings, "point_radius")
         layout.prop(settings, "field_cutoff")
         layout.operator("promptgs.load_result", text="Load PLY…", icon="FILE")
+        layout.operator("promptgs.export_gaussians", text="Export Gaussians…", icon="EXPORT")
 
 
 CLASSES = (PROMPTGS_PT_dataset, PROMPTGS_PT_prompts, PROMPTGS_PT_train, PROMPTGS_PT_preview, PROMPTGS_PT_display)

@@ -45,6 +45,7 @@ LINES = (
     BlenderLine("5.0", "5.0.1", "3.11"),
     BlenderLine("5.1", "5.1.2", "3.13"),
     BlenderLine("5.2 LTS", "5.2.3", "3.13"),
+    BlenderLine("5.3", "5.3.0", "3.13"),
 )
 
 
