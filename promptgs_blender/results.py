@@ -70,7 +70,7 @@ def _colour_sources(obj: bpy.types.Object, g: splats.Splats | None) -> tuple[dic
         dc, opacity = base[:, :3], base[:, 3]
     else:
         dc, opacity = g.f_dc, g.opacity
-    rgb = splats.srgb_to_linear(np.clip(0.5 + splats.SH_C0 * dc.astype(np.float64), 0.0, 1.0))
+    rgb = splats.srgb_to_linear(np.clip(np.float32(0.5) + np.float32(splats.SH_C0) * dc, 0.0, 1.0))
     return {"color": rgb, "opacity": opacity}, opacity
 
 

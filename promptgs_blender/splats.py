@@ -77,10 +77,14 @@ def log_scale(scale: np.ndarray) -> np.ndarray:
 
 
 def normalized(quats: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z); a zero one becomes the identity."""
-    q = np.asarray(quats, np.float64)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    return _f32(np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), [1.0, 0.0, 0.0, 0.0]))
+    """Unit quaternions (w, x, y, z), float32 (norms taken in float64); a zero one becomes the identity."""
+    q = np.asarray(quats)
+    norm = np.sqrt(np.einsum("ij,ij->i", q, q, dtype=np.float64))
+    zero = norm == 0
+    out = _f32(q / np.where(zero, 1.0, norm)[:, None])
+    if zero.any():
+        out[zero] = [1.0, 0.0, 0.0, 0.0]
+    return out
 
 
 ACTIVATIONS = {"opacity": (sigmoid, logit), "scale": (exp_scale, log_scale), "rotation": (normalized, None)}
@@ -104,8 +108,8 @@ def file_values(splats: Splats, name: str) -> np.ndarray:
 def from_snapshot(data: dict[str, np.ndarray]) -> Splats:
     """A trainer snapshot (activated opacity and scale, RGB of the DC term, no higher SH)."""
     n = len(data["means"])
-    color = np.asarray(data.get("color", np.full((n, 3), 0.5)), np.float64)[:, :3]
-    return Splats(means=_f32(data["means"]).reshape(n, 3), f_dc=_f32((color - 0.5) / SH_C0),
+    color = _f32(data["color"])[:, :3] if "color" in data else np.full((n, 3), 0.5, np.float32)
+    return Splats(means=_f32(data["means"]).reshape(n, 3), f_dc=(color - np.float32(0.5)) * np.float32(1.0 / SH_C0),
                   f_rest=np.zeros((n, 0, 3), np.float32),
                   opacity=_f32(data.get("opacity", np.ones(n))).reshape(n),
                   scale=_f32(data.get("scale", np.zeros((n, 3)))).reshape(n, 3),
@@ -118,8 +122,12 @@ def rgb(splats: Splats) -> np.ndarray:
 
 
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    c = np.asarray(c, np.float64)
-    return _f32(np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4))
+    """The sRGB transfer function undone (float32), as Cycles reads a splat's colour."""
+    c = _f32(c)
+    out = np.power((c + np.float32(0.055)) * np.float32(1 / 1.055), np.float32(2.4))
+    low = c <= 0.04045
+    out[low] = c[low] * np.float32(1 / 12.92)
+    return out
 
 
 def subset(splats: Splats, keep: np.ndarray) -> Splats:

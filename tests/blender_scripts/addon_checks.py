@@ -9,7 +9,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import addon, bpy, check, finish, config, forbidden_modules, blocked_attempts, install, run_until_idle  # noqa: E402
+from harness import addon, bpy, check, delete_selected_points, finish, config, forbidden_modules, blocked_attempts, install, run_until_idle  # noqa: E402
 
 import numpy as np  # noqa: E402
 from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
@@ -709,24 +709,6 @@ def export_round_trip_bit_for_bit():
     obj.matrix_basis.identity()
     root.matrix_world = root_before
     return {"source": str(source), "exported": str(out)}
-
-
-def delete_selected_points(obj, select: np.ndarray) -> None:
-    """Delete points as a user does: select them, Edit Mode, Delete (meshes and 5.1+ point clouds)."""
-    for other in bpy.context.selected_objects:
-        other.select_set(False)
-    obj.select_set(True)
-    bpy.context.view_layer.objects.active = obj
-    if obj.type == "MESH":
-        obj.data.vertices.foreach_set("select", select)
-        bpy.ops.object.mode_set(mode="EDIT")
-        bpy.ops.mesh.delete(type="VERT")
-    else:
-        attr = obj.data.attributes.get(".selection") or obj.data.attributes.new(".selection", "BOOLEAN", "POINT")
-        attr.data.foreach_set("value", select)
-        bpy.ops.object.mode_set(mode="EDIT")
-        bpy.ops.pointcloud.delete()
-    bpy.ops.object.mode_set(mode="OBJECT")
 
 
 @check
