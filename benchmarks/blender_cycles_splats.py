@@ -14,7 +14,7 @@ Material Preview) from the same camera.
 
 The driver (this interpreter: torch and the engine) renders the camera with ``promptgs
 render``, computes the PSNRs and writes ``cycles_splats.json`` and
-``cycles_splats.png`` (photo | promptgs render | Cycles) into ``--out``.
+``cycles_splats.png`` (photo | promptgs render | the Cycles renders of ``--figure``) into ``--out``.
 
     python benchmarks/blender_cycles_splats.py RUN --camera 12.jpg --out runs/bench/cycles_splats \\
         --variants 16 16box 256 256box 256dc [--snapshot RUN2/snapshots/step_000300.npz]
@@ -100,6 +100,7 @@ def main() -> None:
     parser.add_argument("--camera", default="12.jpg")
     parser.add_argument("--out", type=Path, default=Path("runs/bench/cycles_splats"))
     parser.add_argument("--variants", nargs="*", default=["16", "16box", "256box", "256dc"])
+    parser.add_argument("--figure", nargs="*", help="variants in the side-by-side picture (default: the first)")
     parser.add_argument("--snapshot", type=Path, help="a snapshot .npz to render with EEVEE as well")
     parser.add_argument("--worker", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -149,8 +150,8 @@ def main() -> None:
     print(f"promptgs render: {report['promptgs_render_vs_photo_db']:.2f} dB vs photo")
     if "snapshot" in result:
         report["snapshot"] = result["snapshot"]
-    first = np.asarray(Image.open(result["renders"][args.variants[0]]["path"]).convert("RGB"))
-    Image.fromarray(np.concatenate([photo, ours, first], axis=1)).save(out / "cycles_splats.png")
+    shown = [np.asarray(Image.open(result["renders"][v]["path"]).convert("RGB")) for v in args.figure or args.variants[:1]]
+    Image.fromarray(np.concatenate([photo, ours, *shown], axis=1)).save(out / "cycles_splats.png")
     (out / "cycles_splats.json").write_text(json.dumps(report, indent=1))
     print(out / "cycles_splats.json")
 
