@@ -1,4 +1,4 @@
-"""Operators: import, prompts, train / cancel / resume and the runs list, load result, the
+"""Operators: import, prompts, train / cancel / resume and the runs list, load result, export Gaussians, the
 trainer's check and set-up, dataset generation, reconstruction, previews.
 
 None of them is modal: a job is followed by a timer (training.drain_and_apply), so Esc
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
-from bpy_extras.io_utils import ImportHelper
+from bpy_extras.io_utils import ExportHelper, ImportHelper
 from mathutils import Vector
 
 from . import colmap, display, importer, plyio, preview, prompts, proposals, reconstruct, results, training
@@ -396,6 +396,30 @@ class PROMPTGS_OT_load_result(bpy.types.Operator, ImportHelper):
         return {"FINISHED"}
 
 
+class PROMPTGS_OT_export_gaussians(bpy.types.Operator, ExportHelper):
+    """Write the Gaussians, as you edited them (deleted, cropped), to a standard 3DGS PLY in dataset coordinates"""
+
+    bl_idname = "promptgs.export_gaussians"
+    bl_label = "Export Gaussians"
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    start_from: BoolProperty(name="Train From It", default=True,
+                             description="Make it the Start From file of the next training")
+
+    def execute(self, context):
+        path = Path(bpy.path.abspath(self.filepath))
+        try:
+            n = results.export_gaussians(context, path)
+        except (ValueError, plyio.PlyError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        if self.start_from:
+            context.scene.promptgs.init_ply = str(path)
+        self.report({"INFO"}, f"Wrote {n} Gaussians to {path}")
+        return {"FINISHED"}
+
+
 class PROMPTGS_OT_find_trainer(bpy.types.Operator):
     """Look for a Python that has promptgs_engine installed (in the background)"""
 
@@ -543,6 +567,7 @@ CLASSES = (
     PROMPTGS_OT_remove_prompt, PROMPTGS_OT_propose, PROMPTGS_OT_accept_proposal, PROMPTGS_OT_train,
     PROMPTGS_OT_cancel, PROMPTGS_OT_resume, PROMPTGS_OT_show_run, PROMPTGS_OT_remove_run, PROMPTGS_OT_attach_run,
     PROMPTGS_OT_cancel_detached, PROMPTGS_OT_notify, PROMPTGS_OT_load_result,
+    PROMPTGS_OT_export_gaussians,
     PROMPTGS_OT_find_trainer, PROMPTGS_OT_test_trainer, PROMPTGS_OT_setup_trainer, PROMPTGS_OT_generate_dataset,
     PROMPTGS_OT_render_preview, PROMPTGS_OT_reconstruct, PROMPTGS_OT_cancel_reconstruct,
 )

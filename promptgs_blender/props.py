@@ -15,7 +15,7 @@ COLOR_ATTRIBUTES = [
     ("score", "Score", "Prompt relevance score per Gaussian"),
     ("opacity", "Opacity", ""),
     ("scale", "Scale", "Mean of the three axis scales"),
-    ("color", "Colour", "RGB of the DC term (Material Preview / Rendered shading)"),
+    ("color", "Colour", "The trained colour (degree-0 SH; Material Preview / Rendered shading)"),
 ]
 PRESETS = {"QUICK": 2000, "STANDARD": 7000, "FULL": 30000}
 
@@ -188,7 +188,7 @@ class PromptGSSettings(bpy.types.PropertyGroup):
     snapshot_every: IntProperty(name="Snapshot Every", default=500, min=1,
                                 description="Steps between viewport updates")
     seed: IntProperty(name="Seed", default=0, min=0)
-    color_by: EnumProperty(name="Colour By", items=COLOR_ATTRIBUTES, default="error",
+    color_by: EnumProperty(name="Colour By", items=COLOR_ATTRIBUTES, default="color",
                            update=_recolor)
     point_radius: FloatProperty(name="Point Size", default=0.01, min=0.0, precision=4,
                                 update=_restyle)
@@ -196,7 +196,10 @@ class PromptGSSettings(bpy.types.PropertyGroup):
                                 update=_restyle,
                                 description="Draw only loss-field voxels above this fraction of the loss range")
     display_style: EnumProperty(name="Draw As", default="AUTO", update=_restyle, items=[
-        ("AUTO", "Auto", "Spheres up to 50,000 points, plain points above"),
+        ("AUTO", "Auto", "Gaussians: Blender's own splats (5.3+), else splats up to 500,000 and points above; "
+                         "the loss field: spheres up to 50,000 points, points above"),
+        ("SPLATS", "Splats", "Each Gaussian with its scale, rotation and opacity: Blender's own splats (5.3+), "
+                             "else instanced ellipsoids (Material Preview / Rendered shading)"),
         ("SPHERES", "Spheres", "Small spheres coloured in every shading mode (slow for many points)"),
         ("POINTS", "Points", "Point-cloud points, fast; colours in Material Preview and Rendered")])
     dataset_preset: EnumProperty(name="Preset", default="small", items=[
@@ -204,6 +207,10 @@ class PromptGSSettings(bpy.types.PropertyGroup):
         ("small", "Small", "A small dataset (minutes to render on a CPU)"),
         ("paper", "Paper", "The full-size dataset (long)")])
     dataset_out: StringProperty(name="Output", subtype="DIR_PATH", default="")
+    init_ply: StringProperty(
+        name="Start From", subtype="FILE_PATH", default="",
+        description="A 3DGS PLY to start training from instead of the sparse points (e.g. the Gaussians "
+                    "exported after cleaning them); empty: the sparse points")
     preview_run: StringProperty(
         name="Run", subtype="DIR_PATH", default="",
         description="Run folder to preview (empty: the shown training run)")

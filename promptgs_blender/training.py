@@ -367,6 +367,8 @@ def build_job(context, out: Path) -> dict:
     }
     if settings.budget:
         job["budget"] = settings.budget
+    if settings.init_ply:  # `promptgs train --init FILE`: start from these Gaussians
+        job["init"] = str(Path(bpy.path.abspath(settings.init_ply)))
     if settings.strategy == "promptgs":  # 3DGS and AbsGS train without prompts (the engine refuses them)
         job["prompts"] = prompts.prompt_file(context.scene, root)
         if settings.auto_prompts:

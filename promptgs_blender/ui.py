@@ -159,6 +159,7 @@ class PROMPTGS_PT_train(PromptGSPanel, bpy.types.Panel):
         col.prop(settings, "snapshot_every")
         col.prop(settings, "checkpoint_every")
         col.prop(settings, "replace_shown")
+        col.prop(settings, "init_ply")
         if not prefs(context).python:
             layout.label(text="No trainer: Preferences > Add-ons > PromptGS: Find, or Set Up Trainer", icon="ERROR")
         record = training.shown_record(context.scene)
@@ -239,6 +240,7 @@ class PROMPTGS_PT_display(PromptGSPanel, bpy.types.Panel):
         layout.prop(settings, "point_radius")
         layout.prop(settings, "field_cutoff")
         layout.operator("promptgs.load_result", text="Load PLY…", icon="FILE")
+        layout.operator("promptgs.export_gaussians", text="Export Gaussians…", icon="EXPORT")
 
 
 CLASSES = (PROMPTGS_PT_dataset, PROMPTGS_PT_prompts, PROMPTGS_PT_train, PROMPTGS_PT_runs, PROMPTGS_PT_preview,

@@ -32,10 +32,11 @@ ENGINE_LAYERS: tuple[frozenset[str], ...] = tuple(map(frozenset, (
 )))
 
 ADDON_LAYERS: tuple[frozenset[str], ...] = tuple(map(frozenset, (
-    # readers, coordinates, the trainer process, the dataset generator, drawing points
-    {"__init__", "coords", "colmap", "plyio", "trainer", "dataset", "display"},
-    # scene objects: the imported dataset, prompt cubes, a run's results
-    {"importer", "prompts", "results"},
+    # readers, coordinates, Gaussians as arrays, the trainer process, the dataset
+    # generator, drawing points
+    {"__init__", "coords", "colmap", "plyio", "splats", "trainer", "dataset", "display"},
+    # scene objects: the imported dataset, prompt cubes, the Gaussians' attributes, a run's results
+    {"importer", "prompts", "splat_attributes", "results"},
     # jobs beside training, and the properties
     {"preview", "reconstruct", "props"},
     {"proposals"},

@@ -132,7 +132,9 @@ CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap"
           "train_with_recorded_events_updates_objects", "cancel_keeps_last_snapshot",
           "crashed_trainer_shows_error_lines", "wrong_trainer_path_is_a_clear_error",
           "dataset_without_images_is_a_clear_error", "dataset_generation_runs_in_background",
-          "reconstruct_from_photos_imports_the_result", "reconstruct_errors_and_cancel", "load_result_reads_3dgs_ply", "million_points_update", "display_settings_apply", "propose_accept_and_reject",
+          "reconstruct_from_photos_imports_the_result", "reconstruct_errors_and_cancel", "load_result_reads_3dgs_ply",
+          "blender_import_agrees_with_ours", "splats_drawn_with_scale_rotation_opacity", "million_points_update",
+          "display_settings_apply", "export_round_trip_bit_for_bit", "export_after_deleting_in_box", "propose_accept_and_reject",
           "proposed_cubes_drawn_in_their_colour", "training_proposals_become_proposed_cubes",
           "panels_draw_in_every_state", "runs_need_no_modal_operator", "second_run_keeps_the_first_and_runs_switch",
           "undo_after_a_snapshot_leaves_a_consistent_scene", "the_panel_tells_what_went_wrong",
@@ -166,6 +168,29 @@ def test_point_clouds_carry_what_the_mesh_carries(line_results, line):
         assert sorted(a.files) == sorted(b.files)
         for key in a.files:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+@pytest.mark.parametrize("line", [line for line in LINES if line.bpy >= "5.3"], ids=str)
+def test_blenders_own_import_is_what_the_addon_shows(line_results, line):
+    """5.3+: the check compared Blender's import of a 3DGS PLY with the Gaussians object."""
+    _, results = line_results(line)
+    outcome = results["blender_import_agrees_with_ours"]
+    assert outcome["ok"] and outcome["native"], outcome
+    assert "radiance:base" in outcome["compared"] and outcome["snapshot_compared"] > 100
+
+
+@pytest.mark.parametrize("line", LINES, ids=str)
+def test_exported_ply_is_the_loaded_one(line_results, line):
+    """Another trainer's PLY loaded and exported unchanged: every property bit for bit (read by plyfile)."""
+    plyfile = pytest.importorskip("plyfile")
+    _, results = line_results(line)
+    outcome = results["export_round_trip_bit_for_bit"]
+    assert outcome["ok"], outcome.get("error")
+    source = plyfile.PlyData.read(outcome["source"])["vertex"].data
+    exported = plyfile.PlyData.read(outcome["exported"])["vertex"].data
+    assert exported.dtype.names == source.dtype.names and len(exported) == len(source)
+    for name in source.dtype.names:
+        np.testing.assert_array_equal(exported[name].view(np.uint32), source[name].view(np.uint32), err_msg=name)
 
 
 @pytest.mark.parametrize("line", [line for line in LINES if line.bpy >= "5.2"], ids=str)

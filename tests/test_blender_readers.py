@@ -373,7 +373,7 @@ def test_pure_modules_never_import_torch_or_the_engine():
         sys.meta_path.insert(0, Block())
         sys.path.insert(0, {str(REPO)!r})
         import promptgs_blender, promptgs_blender.colmap, promptgs_blender.coords
-        import promptgs_blender.plyio, promptgs_blender.trainer
+        import promptgs_blender.plyio, promptgs_blender.splats, promptgs_blender.trainer
         assert "bpy" not in sys.modules
         print("ok")
     """)

@@ -77,12 +77,17 @@ def test_gaussians_object_matches_trainer_ply(run):
     assert len(v) == info["n"] == len(obj["position"])
     col = lambda *names: np.stack([v[n] for n in names], axis=1).astype(np.float64)  # noqa: E731
     np.testing.assert_allclose(obj["position"], col("x", "y", "z"), atol=1e-5)
-    np.testing.assert_allclose(obj["opacity"], 1 / (1 + np.exp(-v["opacity"].astype(np.float64))), atol=1e-5)
+    # Blender 5.3's Gaussian-splat layout (ply_import_gsplat.cc), on every line
+    base = obj["radiance:base"]
+    np.testing.assert_array_equal(base[:, :3], col("f_dc_0", "f_dc_1", "f_dc_2"))
+    np.testing.assert_allclose(base[:, 3], 1 / (1 + np.exp(-v["opacity"].astype(np.float64))), atol=1e-6)
     np.testing.assert_allclose(obj["scale"], np.exp(col("scale_0", "scale_1", "scale_2")), rtol=1e-5, atol=1e-8)
     rot = col("rot_0", "rot_1", "rot_2", "rot_3")
     np.testing.assert_allclose(obj["rotation"], rot / np.linalg.norm(rot, axis=1, keepdims=True), atol=1e-5)
-    dc = col("f_dc_0", "f_dc_1", "f_dc_2")
-    np.testing.assert_allclose(obj["color"][:, :3], np.clip(0.5 + 0.28209479177387814 * dc, 0, 1), atol=1e-5)
+    k = sum(1 for name in v.dtype.names if name.startswith("f_rest_")) // 3
+    assert k == 15 and [f"radiance:sh_{j}" in obj for j in range(k + 1)] == [True] * k + [False]
+    for j in (0, 7, 14):
+        np.testing.assert_array_equal(obj[f"radiance:sh_{j}"], col(f"f_rest_{j}", f"f_rest_{k + j}", f"f_rest_{2 * k + j}"))
     assert obj["score"].shape == obj["error"].shape == (len(v),)
 
 
@@ -140,6 +145,58 @@ def run_photo(run_dir: Path, camera: str) -> Path:
 def _updates_docs(tmp: Path) -> bool:
     """Whether this line's run writes the docs images (PROMPTGS_UPDATE_DOCS_IMAGE=1, the project's own bpy)."""
     return json.loads((tmp / "config.json").read_text())["update_docs"]
+
+
+def test_exported_gaussians_evaluate(run):
+    """*Export Gaussians* of the finished run, unchanged and with the prompt box's splats
+    deleted in Edit Mode: ``promptgs eval`` reads both; the unchanged one scores exactly
+    what the run scored (it is the run's own PLY, bit for bit)."""
+    from promptgs_engine.evaluation import evaluate_run
+
+    tmp, results = run
+    info = _ok(results, "export_for_eval")
+    out = Path(_ok(results, "train_real_trainer")["out"])
+    trained = json.loads((out / "metrics.json").read_text())
+    unchanged = evaluate_run(Path(info["unchanged"]), quiet=True)
+    assert unchanged["n_gaussians"] == trained["n_gaussians"]
+    assert unchanged["psnr"] == pytest.approx(trained["psnr"], abs=1e-6)
+    assert (Path(info["unchanged"]) / "point_cloud.ply").read_bytes().split(b"end_header")[1] == \
+        (out / "point_cloud.ply").read_bytes().split(b"end_header")[1]
+    cropped = evaluate_run(Path(info["cropped"]), quiet=True)
+    assert cropped["n_gaussians"] == info["n_left"] == trained["n_gaussians"] - info["deleted"]
+    assert np.isfinite(cropped["psnr"]) and cropped["psnr"] != trained["psnr"]
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(1.0 / np.mean((a.astype(np.float64) - b) ** 2)))
+
+
+def test_cycles_renders_the_run_like_promptgs_render(run, tmp_path):
+    """5.3+: Cycles' render of Blender's own splats from a dataset camera against the photo
+    and against ``promptgs render`` of that camera (PSNR)."""
+    from PIL import Image
+
+    from promptgs_engine.evaluation import render_run
+
+    tmp, results = run
+    info = _ok(results, "cycles_render_of_native_splats")
+    if not info["native"]:
+        pytest.skip("Blender draws Gaussian splats itself from 5.3 on")
+    out = Path(_ok(results, "train_real_trainer")["out"])
+    camera = json.loads((tmp / "config.json").read_text())["render_camera"]
+    [path] = render_run(out, tmp_path, [camera], quiet=True)
+    ours = np.asarray(Image.open(path).convert("RGB"), np.float32) / 255.0
+    cycles = np.asarray(Image.open(info["image"]).convert("RGB"), np.float32) / 255.0
+    photo = np.asarray(Image.open(run_photo(out, camera)).convert("RGB"), np.float32) / 255.0
+    assert cycles.shape == ours.shape == photo.shape, (cycles.shape, ours.shape)
+    against_ours, against_photo = _psnr(cycles, ours), _psnr(cycles, photo)
+    # the same scene in the same place and colours: far closer to our render than a
+    # picture shifted by a tenth of its width is
+    shifted = _psnr(np.roll(cycles, cycles.shape[1] // 10, axis=1), ours)
+    assert against_ours > 20.0 and against_ours > shifted + 5.0, (against_ours, shifted)
+    assert against_photo > 12.0, against_photo
+    print(f"Cycles vs promptgs render {against_ours:.2f} dB, vs photo {against_photo:.2f} dB, "
+          f"promptgs render vs photo {_psnr(ours, photo):.2f} dB, {info['seconds']} s")
 
 
 def test_cancel_keeps_last_snapshot(run):

@@ -9,14 +9,20 @@ from pathlib import Path
 from types import SimpleNamespace
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import (addon, blocked_attempts, bpy, cancel_and_wait, check, config, finish, forbidden_modules,  # noqa: E402
-                     install, process_gone, run_until_idle)
+from harness import (addon, blocked_attempts, bpy, cancel_and_wait, check, config, delete_selected_points, finish,  # noqa: E402
+                     forbidden_modules, install, process_gone, run_until_idle)
 
 import numpy as np  # noqa: E402
 from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
 from mathutils import Euler, Matrix, Vector  # noqa: E402
 
 TMP = Path(config["tmp"])
+SH_C0 = 0.28209479177387814
+
+
+def srgb_to_linear(c):
+    c = np.asarray(c, np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 scene = lambda: bpy.context.scene  # noqa: E731
 jobs = lambda: bpy.context.window_manager.promptgs_run  # noqa: E731  (the other background jobs)
 
@@ -325,23 +331,32 @@ def train_with_recorded_events_updates_objects():
     n = len(data["means"])
     assert display.point_count(obj) == n == st.n_gaussians == 400
     np.testing.assert_allclose(display.get_attribute(obj, "position"), data["means"], atol=1e-6)
-    for key in ("opacity", "scale", "rotation", "score", "error"):
+    for key in ("scale", "rotation", "score", "error"):
         np.testing.assert_allclose(display.get_attribute(obj, key), data[key], atol=1e-6, err_msg=key)
-    np.testing.assert_allclose(display.get_attribute(obj, "color")[:, :3], data["color"], atol=1e-6)
+    base = display.get_attribute(obj, "radiance:base")  # Blender 5.3's layout: f_dc, opacity
+    np.testing.assert_allclose(base[:, 3], data["opacity"], atol=1e-6)
+    np.testing.assert_allclose(0.5 + SH_C0 * base[:, :3], data["color"], atol=1e-6)
     assert obj.parent == scene().promptgs.root
     field = bpy.data.objects["PromptGS Loss Field"]
     assert display.point_count(field) == 64
     np.testing.assert_allclose(display.get_attribute(field, "loss"), data["field_loss"], atol=1e-6)
     np.testing.assert_allclose(display.get_attribute(field, "attention"), data["field_attention"], atol=1e-6)
-    bins = display.get_attribute(obj, "display_bin")
-    assert bins.min() >= 0 and bins.max() == display.N_BINS - 1  # coloured by error
+    # the default look: splats in their trained colours (Blender's own from 5.3 on)
+    native = bpy.app.version >= (5, 3, 0)
+    assert obj["promptgs_mode"] == ("NATIVE" if native else "SPLATS"), obj["promptgs_mode"]
+    if native:
+        assert obj.data.type == "GAUSSIAN_SPLAT" and not obj.modifiers["PromptGS Display"].show_viewport
+    else:
+        shown = display.get_attribute(obj, "display_color")
+        np.testing.assert_allclose(shown[:, :3], srgb_to_linear(data["color"]), atol=1e-5)
+        np.testing.assert_allclose(shown[:, 3], data["opacity"], atol=1e-6)
     # a point cloud where Blender can resize one from Python (5.1+), a points-only mesh before
     kind = "POINTCLOUD" if bpy.app.version >= (5, 1, 0) else "MESH"
     assert obj.type == field.type == kind, (obj.type, field.type, bpy.app.version_string)
     # what the object carries, for the comparison across lines (test_blender_addon.py)
     np.savez(TMP / "gaussians_object.npz", snapshot=np.array(Path(st.last_snapshot).name),
              **{f"gaussians_{key}": display.get_attribute(obj, key)
-                for key in ("position", "opacity", "scale", "rotation", "color", "score", "error")},
+                for key in ("position", "radiance:base", "scale", "rotation", "score", "error")},
              **{f"field_{key}": display.get_attribute(field, key) for key in ("position", "loss", "attention")})
     return {"first_snapshot_count": seen["count"], "final_count": n, "object_type": obj.type,
             "blender": bpy.app.version_string}
@@ -490,34 +505,163 @@ def reconstruct_errors_and_cancel():
     return {"message": jobs().sfm_message}
 
 
+INRIA_NAMES = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
+               + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+def write_ply(path: Path, names: list, table: np.ndarray) -> Path:
+    """A binary little-endian float32 PLY of one vertex table (numpy only: no plyfile here)."""
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % len(table)
+    header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
+    path.write_bytes(header.encode() + np.ascontiguousarray(table, "<f4").tobytes())
+    return path
+
+
+def load_random_ply(name: str, seed: int, n: int) -> tuple[np.ndarray, Path, object]:
+    """A random Inria-layout PLY (SH degree 3, normals) loaded with Load Result: its table,
+    its path and the Gaussians object."""
+    table = np.random.default_rng(seed).normal(size=(n, len(INRIA_NAMES))).astype("<f4")
+    path = write_ply(TMP / name, INRIA_NAMES, table)
+    bpy.ops.promptgs.load_result(filepath=str(path))
+    return table, path, bpy.data.objects["PromptGS Gaussians"]
+
+
+def expected_layout(col: dict) -> dict:
+    """Blender 5.3's Gaussian-splat attributes of a 3DGS vertex table (ply_import_gsplat.cc)."""
+    stack = lambda *names: np.stack([col[n].astype(np.float64) for n in names], 1)  # noqa: E731
+    rot = stack("rot_0", "rot_1", "rot_2", "rot_3")
+    out = {"position": stack("x", "y", "z"),
+           "radiance:base": np.concatenate([stack("f_dc_0", "f_dc_1", "f_dc_2"),
+                                            1 / (1 + np.exp(-stack("opacity")))], 1),
+           "scale": np.exp(stack("scale_0", "scale_1", "scale_2")),
+           "rotation": rot / np.linalg.norm(rot, axis=1, keepdims=True)}
+    k = sum(1 for name in col if name.startswith("f_rest_")) // 3
+    out.update({f"radiance:sh_{j}": stack(f"f_rest_{j}", f"f_rest_{k + j}", f"f_rest_{2 * k + j}") for j in range(k)})
+    return out
+
+
 @check
 def load_result_reads_3dgs_ply():
-    rng = np.random.default_rng(3)
+    """A 3DGS PLY (degree 3, normals) becomes Blender 5.3's splat attributes, on every line."""
     n = 500
-    names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
-             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
-    table = rng.normal(size=(n, len(names))).astype("<f4")
-    header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % n
-    header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
-    path = TMP / "result.ply"
-    path.write_bytes(header.encode() + table.tobytes())
     run = next(r for r in reversed(scene().promptgs.runs) if r.last_snapshot)  # a run with Gaussians
     bpy.ops.promptgs.show_run(name=run.name)
-    bpy.ops.promptgs.load_result(filepath=str(path))
-    obj = bpy.data.objects["PromptGS Gaussians"]
+    table, _, obj = load_random_ply("result.ply", 3, n)
     assert scene().promptgs.shown_run == "" and obj.get("promptgs_run") is None  # shows no run now
     kept = bpy.data.objects[addon("training").parked_name("PromptGS Gaussians", run.name)]  # the run's are kept
     assert addon("display").point_count(kept) == npz_count(run.last_snapshot)
     display = addon("display")
-    col = {name: table[:, i] for i, name in enumerate(names)}
+    col = {name: table[:, i] for i, name in enumerate(INRIA_NAMES)}
     assert display.point_count(obj) == n
-    np.testing.assert_allclose(display.get_attribute(obj, "position")[:, 0], col["x"], atol=1e-6)
-    np.testing.assert_allclose(display.get_attribute(obj, "opacity"), 1 / (1 + np.exp(-col["opacity"])), atol=1e-6)
+    for name, values in expected_layout(col).items():
+        np.testing.assert_allclose(display.get_attribute(obj, name), values, rtol=1e-6, atol=1e-7, err_msg=name)
+    assert "radiance:sh_15" not in obj.data.attributes
+    np.testing.assert_array_equal(display.get_attribute(obj, "nx"), col["nx"])  # other properties kept
+    result = {"n": n, "radiance_base_type": obj.data.attributes["radiance:base"].data_type}
     bpy.ops.promptgs.show_run(name=run.name)  # back to the run (the loaded PLY is kept, as "Loaded")
     assert bpy.data.objects.get(addon("training").parked_name("PromptGS Gaussians", "Loaded")) is not None
     assert display.point_count(bpy.data.objects["PromptGS Gaussians"]) == npz_count(run.last_snapshot)
-    obj = bpy.data.objects["PromptGS Gaussians"]
-    return {"n": n}
+    return result
+
+
+@check
+def blender_import_agrees_with_ours():
+    """5.3+: Blender's own import (wm.ply_import) of a 3DGS PLY and our Gaussians object of
+    the same file, and of a snapshot of the same Gaussians, agree attribute by attribute."""
+    if not addon("display").native_splats_supported():
+        return {"native": False}
+    display, results = addon("display"), addon("results")
+    rng = np.random.default_rng(4)
+    n = 400
+    table = rng.normal(size=(n, len(INRIA_NAMES))).astype("<f4")
+    table[:, INRIA_NAMES.index("opacity")] *= 4  # logits far from 0: a logit taken for an opacity shows
+    path = write_ply(TMP / "agree.ply", INRIA_NAMES, table)
+    bpy.ops.promptgs.load_result(filepath=str(path))
+    ours = bpy.data.objects["PromptGS Gaussians"]
+    before = set(bpy.data.objects)
+    bpy.ops.wm.ply_import(filepath=str(path))
+    [theirs] = set(bpy.data.objects) - before
+    assert theirs.type == "POINTCLOUD" and theirs.data.type == ours.data.type == "GAUSSIAN_SPLAT"
+    compared = []
+    for attr in theirs.data.attributes:
+        mine = ours.data.attributes.get(attr.name)
+        assert mine is not None and mine.data_type == attr.data_type, (attr.name, attr.data_type, mine and mine.data_type)
+        np.testing.assert_allclose(display.get_attribute(ours, attr.name), display.get_attribute(theirs, attr.name),
+                                   rtol=1e-6, atol=1e-7, err_msg=attr.name)
+        compared.append(attr.name)
+    assert {"radiance:base", "scale", "rotation", "radiance:sh_14"} <= set(compared), compared
+    # a live snapshot of the same Gaussians (activated values, the DC term's RGB, no higher SH)
+    col = {name: table[:, i] for i, name in enumerate(INRIA_NAMES)}
+    layout = expected_layout(col)
+    rgb = 0.5 + SH_C0 * layout["radiance:base"][:, :3]
+    results.show_gaussians(bpy.context, {"means": layout["position"].astype(np.float32),
+                                         "opacity": layout["radiance:base"][:, 3].astype(np.float32),
+                                         "scale": layout["scale"].astype(np.float32),
+                                         "rotation": table[:, -4:], "color": np.clip(rgb, 0, 1).astype(np.float32)})
+    inside = ((rgb > 0) & (rgb < 1)).all(axis=1)
+    for name in ("position", "radiance:base", "scale", "rotation"):
+        np.testing.assert_allclose(display.get_attribute(ours, name)[inside], display.get_attribute(theirs, name)[inside],
+                                   rtol=1e-5, atol=2e-6, err_msg=f"snapshot {name}")
+    assert ours.data.type == "GAUSSIAN_SPLAT" and "radiance:sh_0" not in ours.data.attributes
+    bpy.data.objects.remove(theirs)
+    return {"native": True, "compared": compared, "snapshot_compared": int(inside.sum())}
+
+
+def check_splats_drawn() -> dict:
+    display, results = addon("display"), addon("results")
+    rng = np.random.default_rng(5)
+    n = 300
+    q = rng.normal(size=(n, 4)).astype(np.float32)
+    data = {"means": rng.normal(size=(n, 3)).astype(np.float32), "opacity": rng.uniform(size=n).astype(np.float32),
+            "scale": rng.uniform(0.01, 0.1, size=(n, 3)).astype(np.float32),
+            "rotation": q / np.linalg.norm(q, axis=1, keepdims=True), "color": rng.uniform(size=(n, 3)).astype(np.float32)}
+    obj = results.show_gaussians(bpy.context, data)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    if display.native_splats_supported():
+        evaluated = obj.evaluated_get(depsgraph)
+        assert obj["promptgs_mode"] == "NATIVE" and evaluated.data.type == "GAUSSIAN_SPLAT"
+        assert len(evaluated.data.points) == n and not obj.modifiers["PromptGS Display"].show_viewport
+        return {"mode": "NATIVE"}
+    assert obj["promptgs_mode"] == "SPLATS"
+    root = np.array(scene().promptgs.root.matrix_world)
+    found = {}
+    for inst in depsgraph.object_instances:
+        if inst.is_instance and inst.parent is not None and inst.parent.original == obj:
+            found[inst.persistent_id[1]] = (np.array(inst.matrix_world),
+                                            [m.name for m in inst.object.data.materials if m is not None])
+    assert sorted(found) == list(range(n)), len(found)
+    worst = 0.0
+    for i in range(0, n, 7):
+        w, x, y, z = data["rotation"][i].astype(np.float64)
+        rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        local = np.eye(4)
+        local[:3, :3] = rot * (display.SPLAT_SIGMAS * data["scale"][i])
+        local[:3, 3] = data["means"][i]
+        worst = max(worst, float(np.abs(found[i][0] - root @ local).max()))
+        assert found[i][1] == [display.SPLAT_MATERIAL], found[i][1]
+    assert worst < 1e-5, worst
+    shown = display.get_attribute(obj, "display_color")
+    evaluated = obj.evaluated_get(depsgraph)
+    if hasattr(evaluated, "evaluated_geometry"):  # 4.3+: what the splat material reads per instance
+        geometry = evaluated.evaluated_geometry()
+        shown = display.get_attribute(geometry.instances_pointcloud(), "display_color")
+    np.testing.assert_allclose(shown[:, :3], srgb_to_linear(data["color"]), atol=1e-5)
+    np.testing.assert_allclose(shown[:, 3], data["opacity"], atol=1e-6)
+    return {"mode": "SPLATS", "instances": len(found), "max_matrix_error": worst}
+
+
+@check
+def splats_drawn_with_scale_rotation_opacity():
+    """Each Gaussian drawn as itself: Blender's splats (5.3+), else an instance per Gaussian
+    at its centre, turned by its rotation, 3 sigmas along its scales, in its colour and opacity."""
+    settings = scene().promptgs
+    settings.display_style, settings.color_by = "SPLATS", "color"
+    try:
+        return check_splats_drawn()
+    finally:
+        settings.display_style = "AUTO"
 
 
 @check
@@ -536,6 +680,8 @@ def million_points_update():
     addon("results").show_gaussians(bpy.context, data)
     seconds = time.time() - start
     assert display.point_count(obj) == n
+    # above SPLATS_UP_TO the fallback draws points (4.2–5.2); Blender's own splats from 5.3 on
+    assert obj["promptgs_mode"] == ("NATIVE" if display.native_splats_supported() else "POINTS"), obj["promptgs_mode"]
     start = time.time()
     depsgraph = bpy.context.evaluated_depsgraph_get()
     depsgraph.update()
@@ -572,14 +718,14 @@ def display_settings_apply():
     assert abs(display.modifier_input(mod, "Radius") - 0.0123) < 1e-6
     settings.color_by = "opacity"
     assert obj["promptgs_color_by"] == "opacity"
-    opacity = display.get_attribute(obj, "opacity")
+    opacity = display.get_attribute(obj, "radiance:base")[:, 3]
     bins = display.get_attribute(obj, "display_bin")
     assert bins[np.argmax(opacity)] == display.N_BINS - 1 and bins[np.argmin(opacity)] == 0
     settings.color_by = "color"
     rgb = display.get_attribute(obj, "display_color")[:, :3]
-    np.testing.assert_allclose(rgb, display.get_attribute(obj, "color")[:, :3], atol=1e-6)
-    settings.display_style = "AUTO"
-    settings.color_by = "error"
+    dc = display.get_attribute(obj, "radiance:base")[:, :3]
+    np.testing.assert_allclose(rgb, srgb_to_linear(np.clip(0.5 + SH_C0 * dc, 0, 1)), atol=1e-5)
+    settings.display_style = "AUTO"  # back to splats, in the trained colours
     # the loss field: a quarter-voxel radius and only the voxels above the cutoff
     field = bpy.data.objects["PromptGS Loss Field"]
     fmod = field.modifiers["PromptGS Display"]
@@ -592,6 +738,104 @@ def display_settings_apply():
     assert shown_vertices(field) == n_vertices_per_sphere * int((value >= 0.75).sum()) > 0
     settings.field_cutoff = 0.5
     return {"field_shown": int((value >= 0.75).sum()), "field_total": len(value)}
+
+
+def ply_body(path: Path) -> tuple[list, bytes]:
+    """The property lines and the bytes after the header of a PLY."""
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    return [line for line in data[:end].decode().splitlines() if line.startswith(("property", "element"))], data[end:]
+
+
+@check
+def export_round_trip_bit_for_bit():
+    """A PLY of another trainer's layout (gsplat/Inria: degree 0, zero normals), loaded and
+    exported unchanged, is the same file: every property bit for bit, in the same order."""
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    rng = np.random.default_rng(6)
+    table = rng.normal(size=(700, len(names))).astype("<f4")
+    table[:, 3:6] = 0.0
+    table[:, names.index("opacity")] *= 6.0
+    table[:, 10:13] -= 4.0
+    source = write_ply(TMP / "gsplat_like.ply", names, table)
+    root = scene().promptgs.root
+    root_before = root.matrix_world.copy()
+    root.matrix_world = Matrix.Translation((0.3, -1.0, 2.0)) @ Euler((0.2, 0.5, -0.3)).to_matrix().to_4x4() @ root.matrix_world
+    bpy.ops.promptgs.load_result(filepath=str(source))
+    out = TMP / "gsplat_like_exported.ply"
+    assert bpy.ops.promptgs.export_gaussians(filepath=str(out), start_from=False) == {"FINISHED"}
+    assert ply_body(out) == ply_body(source), "the exported PLY differs from the one loaded"
+    # the Gaussians object itself turned: written turned, in dataset coordinates
+    obj = bpy.data.objects["PromptGS Gaussians"]
+    obj.matrix_basis = Matrix.Rotation(0.4, 4, "Z")
+    bpy.context.view_layer.update()
+    turned = TMP / "gsplat_like_turned.ply"
+    bpy.ops.promptgs.export_gaussians(filepath=str(turned), start_from=False)
+    moved = addon("plyio").read_vertices(turned)
+    expected = table[:, :3].astype(np.float64) @ np.array(Matrix.Rotation(0.4, 3, "Z")).T
+    np.testing.assert_allclose(np.stack([moved["x"], moved["y"], moved["z"]], 1), expected, atol=1e-5)
+    obj.matrix_basis.identity()
+    root.matrix_world = root_before
+    return {"source": str(source), "exported": str(out)}
+
+
+@check
+def export_after_deleting_in_box():
+    """Splats deleted in a box are gone from the export, the others are written as loaded;
+    the file becomes the next training's start (job key "init"); Blender 5.3 reads it back."""
+    display, plyio = addon("display"), addon("plyio")
+    n = 600
+    table, _, obj = load_random_ply("to_crop.ply", 7, n)
+    inside = (np.abs(table[:, :3]) < 0.6).all(axis=1)
+    delete_selected_points(obj, inside)
+    assert display.point_count(obj) == n - inside.sum()
+    out = TMP / "cropped.ply"
+    assert bpy.ops.promptgs.export_gaussians(filepath=str(out)) == {"FINISHED"}
+    kept = plyio.read_vertices(out)
+    assert len(kept) == n - inside.sum() and list(kept.dtype.names) == INRIA_NAMES
+    for i, name in enumerate(INRIA_NAMES):
+        np.testing.assert_array_equal(kept[name], table[~inside, i], err_msg=name)
+    assert scene().promptgs.init_ply == str(out)
+    job = addon("training").build_job(bpy.context, TMP / "job_init")
+    assert job["init"] == str(out), job.get("init")
+    info = {"deleted": int(inside.sum()), "kept": len(kept)}
+    if display.native_splats_supported():  # Blender's own importer reads what we wrote
+        before = set(bpy.data.objects)
+        bpy.ops.wm.ply_import(filepath=str(out))
+        [theirs] = set(bpy.data.objects) - before
+        assert len(theirs.data.points) == len(kept) and theirs.data.type == "GAUSSIAN_SPLAT"
+        for name in ("position", "radiance:base", "scale", "rotation", "radiance:sh_14"):
+            np.testing.assert_allclose(display.get_attribute(theirs, name), display.get_attribute(obj, name),
+                                       rtol=1e-6, atol=1e-7, err_msg=name)
+        # and exporting Blender's own object works too (its ply_export writes no vertices)
+        again = TMP / "blender_object.ply"
+        addon("results").export_gaussians(bpy.context, again, theirs)
+        assert len(plyio.read_vertices(again)) == len(kept)
+        bpy.data.objects.remove(theirs)
+        info["blender_reads_it"] = True
+    # a crop by a modifier of the user's own applies too (the display modifier does not)
+    group = bpy.data.node_groups.new("Crop x>0", "GeometryNodeTree")
+    group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    g_in, g_out = group.nodes.new("NodeGroupInput"), group.nodes.new("NodeGroupOutput")
+    position, xyz = group.nodes.new("GeometryNodeInputPosition"), group.nodes.new("ShaderNodeSeparateXYZ")
+    compare, delete = group.nodes.new("FunctionNodeCompare"), group.nodes.new("GeometryNodeDeleteGeometry")
+    compare.data_type, compare.operation, delete.domain = "FLOAT", "GREATER_THAN", "POINT"
+    group.links.new(position.outputs[0], xyz.inputs[0])
+    group.links.new(xyz.outputs["X"], display.socket(compare.inputs, "A"))
+    group.links.new(g_in.outputs[0], display.socket(delete.inputs, "Geometry"))
+    group.links.new(compare.outputs[0], display.socket(delete.inputs, "Selection"))
+    group.links.new(delete.outputs[0], g_out.inputs[0])
+    crop = obj.modifiers.new("Crop", "NODES")
+    crop.node_group = group
+    cropped = TMP / "cropped_by_modifier.ply"
+    bpy.ops.promptgs.export_gaussians(filepath=str(cropped), start_from=False)
+    obj.modifiers.remove(crop)
+    left = plyio.read_vertices(cropped)
+    assert len(left) == int(((table[:, 0] <= 0) & ~inside).sum()) and left["x"].max() <= 0, len(left)
+    info["cropped_by_modifier"] = len(left)
+    return info
 
 
 def box_of(obj, root) -> dict:

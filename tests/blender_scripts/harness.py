@@ -130,6 +130,25 @@ def cancel_and_wait(pids: list[int], gone_within: float) -> tuple[float, list[in
     return time.time() - start, [pid for pid in pids if not process_gone(pid)]
 
 
+def delete_selected_points(obj, select) -> None:
+    """Delete points as a user does: select them, Edit Mode, Delete (a points-only mesh on
+    4.2–5.0, a point cloud from 5.1 on)."""
+    for other in bpy.context.selected_objects:
+        other.select_set(False)
+    obj.select_set(True)
+    bpy.context.view_layer.objects.active = obj
+    if obj.type == "MESH":
+        obj.data.vertices.foreach_set("select", select)
+        bpy.ops.object.mode_set(mode="EDIT")
+        bpy.ops.mesh.delete(type="VERT")
+    else:
+        attr = obj.data.attributes.get(".selection") or obj.data.attributes.new(".selection", "BOOLEAN", "POINT")
+        attr.data.foreach_set("value", select)
+        bpy.ops.object.mode_set(mode="EDIT")
+        bpy.ops.pointcloud.delete()
+    bpy.ops.object.mode_set(mode="OBJECT")
+
+
 def forbidden_modules() -> list[str]:
     return sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
 

@@ -7,13 +7,14 @@ the scene with Workbench while training goes on, then cancels a second run mid-w
 
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import (addon, bpy, cancel_and_wait, check, config, finish, forbidden_modules, install,  # noqa: E402
-                     process_tree, run_until_idle)
+from harness import (addon, bpy, cancel_and_wait, check, config, delete_selected_points, finish,  # noqa: E402
+                     forbidden_modules, install, process_tree, run_until_idle)
 
 import bmesh  # noqa: E402
 import numpy as np  # noqa: E402
@@ -82,6 +83,7 @@ def setup():
     settings.strategy = config["strategy"]
     settings.backend = "cpu"
     settings.color_by = "error"
+    settings.display_style = "SPHERES"  # the Workbench image: spheres in colour-map materials
     settings.point_radius = settings.point_radius * 1.5
     return {"probe": probe}
 
@@ -153,8 +155,9 @@ def train_real_trainer():
     assert st.result_ply and Path(st.result_ply).is_file()
     obj = bpy.data.objects["PromptGS Gaussians"]
     display = addon("display")
-    arrays = {key: display.get_attribute(obj, key) for key in
-              ("position", "opacity", "scale", "rotation", "color", "score", "error")}
+    names = ["position", "radiance:base", "scale", "rotation", "score", "error"]
+    names += sorted((a.name for a in obj.data.attributes if a.name.startswith("radiance:sh_")), key=lambda n: int(n[12:]))
+    arrays = {key: display.get_attribute(obj, key) for key in names}
     np.savez(TMP / "object_attributes.npz", **arrays)
     info.update({"ply": st.result_ply, "n": display.point_count(obj), "status_message": st.message,
                  "psnr": st.psnr, "step": st.step, "loss_field": "PromptGS Loss Field" in bpy.data.objects})
@@ -230,6 +233,66 @@ def preview_user_camera():
     np.save(TMP / "preview_user_camera.npy", addon("preview").pixels(image)[..., :3])
     info.update({"max_error_px": max(errors), "n_points": len(errors)})
     return info
+
+
+@check
+def cycles_render_of_native_splats():
+    """5.3+: Cycles renders the finished run's splats (Blender's own) from a dataset camera,
+    at the run's image size, Standard view transform, for the PSNR comparison of the test."""
+    if not addon("display").native_splats_supported():
+        return {"native": False}
+    sc = scene()
+    sc.promptgs.display_style = "AUTO"  # Blender's own splats (setup chose spheres for Workbench)
+    assert bpy.data.objects["PromptGS Gaussians"].data.type == "GAUSSIAN_SPLAT"
+    addon("importer").use_camera(sc, bpy.data.objects[config["render_camera"]])
+    sc.render.resolution_percentage = 25  # the run trained on images_4
+    sc.render.engine = "CYCLES"
+    sc.cycles.device, sc.cycles.samples = "CPU", config.get("cycles_samples", 16)
+    sc.view_settings.view_transform, sc.view_settings.look = "Standard", "None"
+    sc.render.film_transparent = False
+    if sc.world is None:
+        sc.world = bpy.data.worlds.new("World")
+    sc.world.use_nodes = False
+    sc.world.color = (0.0, 0.0, 0.0)
+    shown = [o for o in bpy.data.objects if o.type in ("MESH", "POINTCLOUD") and not o.hide_render]
+    for o in shown:
+        o.hide_render = o.name != "PromptGS Gaussians"
+    sc.render.filepath = str(TMP / "cycles_native.png")
+    start = time.time()
+    bpy.ops.render.render(write_still=True)
+    for o in shown:
+        o.hide_render = False
+    return {"native": True, "image": sc.render.filepath, "seconds": round(time.time() - start, 1),
+            "size": [sc.render.resolution_x // 4, sc.render.resolution_y // 4]}
+
+
+@check
+def export_for_eval():
+    """The finished run's Gaussians exported as they are, and with the splats inside the
+    prompt box deleted, each into a copy of the run folder (for ``promptgs eval``)."""
+    obj = bpy.data.objects["PromptGS Gaussians"]
+    run = Path(state().out_dir)
+    display = addon("display")
+    out = {}
+    for name in ("unchanged", "cropped"):
+        copy = TMP / f"run_{name}"
+        copy.mkdir()
+        shutil.copy(run / "cfg.json", copy / "cfg.json")
+        if name == "cropped":  # delete in Edit Mode what lies in the prompt cube, as a user would
+            cube = addon("prompts").prompt_objects(scene())[0]
+            local = np.array(cube.matrix_world.inverted() @ obj.matrix_world)
+            co = display.get_attribute(obj, "position").astype(np.float64)
+            inside = (np.abs(co @ local[:3, :3].T + local[:3, 3]) <= cube.empty_display_size).all(axis=1)
+            assert 0 < inside.sum() < len(co), inside.sum()
+            delete_selected_points(obj, inside)
+            out["deleted"] = int(inside.sum())
+        path = copy / "point_cloud.ply"
+        assert bpy.ops.promptgs.export_gaussians(filepath=str(path), start_from=name == "cropped") == {"FINISHED"}
+        out[name] = str(copy)
+    out["n_left"] = display.point_count(obj)
+    assert scene().promptgs.init_ply == str(TMP / "run_cropped" / "point_cloud.ply")
+    scene().promptgs.init_ply = ""  # the trainer here may not know `init` yet
+    return out
 
 
 @check
