@@ -1,8 +1,10 @@
 """The installed extension with the real trainer, in every supported Blender line.
 
 For each line of tests/blender_lines.py, tests/blender_scripts/train_checks.py runs in one
-bpy subprocess of that line (HOME in a temporary folder): a short CPU run and a cancel.
-The trainer is ``python -m promptgs_engine train`` with this interpreter. The run of the
+bpy subprocess of that line (HOME in a temporary folder): a short CPU run and a cancel, on
+the pinhole scene of tests/scenes.py; with ../shared/data beside the repository, also on
+tumbler in the project's own line (the one whose bpy runs the tests). The trainer is
+``python -m promptgs_engine train`` with this interpreter. The tumbler run in the
 project's own line also renders docs/images/blender_training.png (Workbench, from a
 dataset camera) when PROMPTGS_UPDATE_DOCS_IMAGE=1, else into the test's temporary folder.
 """
@@ -18,32 +20,35 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from blender_lines import LINES, LineUnavailable
+from blender_lines import LINES, LineUnavailable, own_line
+from scenes import TUMBLER, real_scene
 
 pytest.importorskip("bpy", reason="needs the bpy module")
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = REPO / "tests" / "blender_scripts"
+RUNS = [(line, "pinhole") for line in LINES] + ([(own_line() or LINES[-1], "tumbler")] if real_scene(TUMBLER) else [])
 
 
-@pytest.fixture(scope="module", params=LINES, ids=str)
-def run(request, tmp_path_factory, shared_data, blender_envs, extension_zip):
+@pytest.fixture(scope="module", params=RUNS, ids=lambda run: f"{run[0].id}-{run[1]}")
+def run(request, tmp_path_factory, made_scenes, blender_envs, extension_zip):
     pytest.importorskip("promptgs_engine.train", reason="needs the trainer")
-    line = request.param
+    line, scene_name = request.param
+    facts = made_scenes[scene_name] if scene_name in made_scenes else TUMBLER
     try:
         python = blender_envs.python(line)
     except LineUnavailable as exc:
         pytest.skip(str(exc))
-    tmp = tmp_path_factory.mktemp(f"train-{line.id}")
-    update_docs = bool(os.environ.get("PROMPTGS_UPDATE_DOCS_IMAGE")) and python == sys.executable
+    tmp = tmp_path_factory.mktemp(f"train-{line.id}-{scene_name}")
+    update_docs = bool(os.environ.get("PROMPTGS_UPDATE_DOCS_IMAGE")) and python == sys.executable and facts is TUMBLER
     image = REPO / "docs" / "images" / "blender_training.png" if update_docs else tmp / "blender_training.png"
     image.parent.mkdir(parents=True, exist_ok=True)
     strategy = "promptgs" if (REPO / "promptgs_engine" / "strategies" / "promptgs.py").is_file() else "3dgs"
     config = {"zip": str(extension_zip), "tmp": str(tmp), "python": sys.executable,
-              "tumbler": str(shared_data / "tumbler"), "iterations": 20, "snapshot_every": 10,
-              "strategy": strategy, "timeout": 240, "image": str(image), "render_camera": "12.jpg",
-              "prompt_rect": [210, 160, 560, 380],  # the cup in 12.jpg
+              "dataset": str(facts.path), "images": facts.small, "iterations": 20, "snapshot_every": 10,
+              "strategy": strategy, "timeout": 240, "image": str(image), "render_camera": facts.render_camera,
+              "prompt_rect": list(facts.prompt_rect),  # the scene's object in that view
               "update_docs": update_docs}
     (tmp / "config.json").write_text(json.dumps(config))
     (tmp / "home").mkdir()

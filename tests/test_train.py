@@ -1,4 +1,4 @@
-"""The trainer and the CLI end to end, on the real tumbler scene and a small toy scene."""
+"""The trainer and the CLI end to end, on the pinhole scenes (tests/scenes.py) and a small toy scene."""
 
 import json
 import math
@@ -18,9 +18,10 @@ from promptgs_engine.evaluation import evaluate
 from promptgs_engine.train import Trainer, run_training
 
 
-def test_training_raises_test_psnr_on_tumbler(shared_data, tmp_path):
-    scene = load_colmap_scene(shared_data / "tumbler", images="images_4")
-    cfg = TrainConfig(dataset=str(shared_data / "tumbler"), out=str(tmp_path / "run"), images="images_4", iterations=200, checkpoint_every=0)
+def test_training_raises_test_psnr(pinhole_scene, tmp_path):
+    scene = load_colmap_scene(pinhole_scene.path, images=pinhole_scene.small)
+    cfg = TrainConfig(dataset=str(pinhole_scene.path), out=str(tmp_path / "run"), images=pinhole_scene.small, iterations=200,
+                      checkpoint_every=0)
     trainer = Trainer(cfg, scene=scene, quiet=True)
     before = evaluate(trainer.params, scene.test_cameras[:4], quiet=True)["psnr"]
     trainer.out.mkdir()

@@ -34,28 +34,39 @@ def prefs():
 prefs().output_dir = str(TMP / "runs")
 
 
-@check
-def import_tumbler():
-    bpy.ops.promptgs.import_colmap(directory=config["tumbler"], images="images_4")
+SCENE, DISTORTED = config["scene"], config["distorted"]  # made by tests/scenes.py
+
+
+def points_of(facts: dict):
+    return bpy.data.objects[f"PromptGS Sparse Points {facts['name']}"]
+
+
+def root_of(facts: dict):
+    return bpy.data.objects[f"PromptGS Root {facts['name']}"]
+
+
+def import_scene(facts: dict):
+    bpy.ops.promptgs.import_colmap(directory=facts["path"], images=facts["small"])
     root = scene().promptgs.root
+    assert root == root_of(facts)
     cams = [o for o in root.children if o.type == "CAMERA"]
-    points = bpy.data.objects["PromptGS Sparse Points tumbler"]
-    assert len(cams) == 77, len(cams)
-    assert len(points.data.vertices) == 9262 and points.type == "MESH"  # editable: a mesh on every line
+    points = points_of(facts)
+    assert len(cams) == facts["n_images"], len(cams)
+    assert len(points.data.vertices) == facts["n_points"] and points.type == "MESH"  # editable: a mesh on every line
     assert {"color", "error"} <= set(points.data.attributes.keys())
     assert scene().promptgs.distortion == ""
     return {"cameras": len(cams)}
 
 
-@check
-def projection_matches_colmap():
-    root = scene().promptgs.root
+def projection_matches_colmap(facts: dict):
+    root = root_of(facts)
     errors = []
-    for item in config["projections"]:
+    for item in facts["projections"]:
         cam = bpy.data.objects[item["image"]]
+        assert cam.parent == root
         bpy.ops.promptgs.use_camera(name=cam.name)
         width, height = scene().render.resolution_x, scene().render.resolution_y
-        assert (width, height) == (cam.data["promptgs_width"], cam.data["promptgs_height"])
+        assert (width, height) == (cam.data["promptgs_width"], cam.data["promptgs_height"]) == tuple(facts["size"])
         ndc = world_to_camera_view(scene(), cam, root.matrix_world @ Vector(item["point"]))
         uv = np.array([ndc.x * width, (1.0 - ndc.y) * height])
         errors.append(float(np.abs(uv - np.array(item["uv"])).max()))
@@ -63,20 +74,42 @@ def projection_matches_colmap():
     return {"max_error_px": max(errors), "n": len(errors)}
 
 
-@check
-def root_puts_capture_upright():
-    root = scene().promptgs.root
+def root_puts_capture_upright(facts: dict):
     ups = []
-    for cam in [o for o in root.children if o.type == "CAMERA"]:
+    for cam in [o for o in root_of(facts).children if o.type == "CAMERA"]:
         ups.append(tuple(cam.matrix_world.to_3x3() @ Vector((0, 1, 0))))  # Blender camera up
     mean_up = np.mean(ups, axis=0)
     assert mean_up[2] > 0.5, mean_up
     return {"mean_camera_up": mean_up.tolist()}
 
 
+def import_distorted_reports_distortion(facts: dict):
+    before = set(bpy.data.objects.keys())
+    bpy.ops.promptgs.import_colmap(directory=facts["path"], backgrounds=True)
+    note = scene().promptgs.distortion
+    cam = bpy.data.objects[facts["background"]]
+    assert cam.data.show_background_images and cam.data.background_images[0].image.name == facts["background"]
+    assert (cam.data["promptgs_width"], cam.data["promptgs_height"]) == tuple(facts["size"])
+    for word in facts["distortion_words"]:
+        assert word in note, (word, note)
+    new = set(bpy.data.objects.keys()) - before
+    assert len([n for n in new if bpy.data.objects[n].type == "CAMERA"]) == facts["n_images"]
+    return {"note": note}
+
+
+def back_to_the_scene() -> None:
+    """The made pinhole scene's import is the one the later checks work on."""
+    scene().promptgs.root = root_of(SCENE)
+    scene().promptgs.images = SCENE["small"]
+
+
+check(import_scene, SCENE)
+check(projection_matches_colmap, SCENE)
+check(root_puts_capture_upright, SCENE)
+
+
 @check
 def non_square_pixels_project_exactly():
-    tumbler_root = scene().promptgs.root
     bpy.ops.promptgs.import_colmap(directory=config["pinhole"], up="+Z")
     root = scene().promptgs.root
     errors = []
@@ -88,27 +121,13 @@ def non_square_pixels_project_exactly():
         uv = np.array([ndc.x * width, (1.0 - ndc.y) * height])
         errors.append(float(np.abs(uv - np.array(item["uv"])).max()))
     aspect = (scene().render.pixel_aspect_x, scene().render.pixel_aspect_y)
-    scene().promptgs.root = tumbler_root
-    scene().promptgs.images = "images_4"
+    back_to_the_scene()
     assert max(errors) < 0.5, max(errors)
     return {"max_error_px": max(errors), "last_pixel_aspect": aspect}
 
 
-@check
-def import_fern_reports_distortion():
-    before = set(bpy.data.objects.keys())
-    bpy.ops.promptgs.import_colmap(directory=config["fern"], backgrounds=True)
-    note = scene().promptgs.distortion
-    cam = bpy.data.objects["image003.png"]
-    assert cam.data.show_background_images and cam.data.background_images[0].image.name == "image003.png"
-    assert (cam.data["promptgs_width"], cam.data["promptgs_height"]) == (504, 378)
-    assert "SIMPLE_RADIAL" in note and "k=0.01975" in note, note
-    new = set(bpy.data.objects.keys()) - before
-    assert len([n for n in new if bpy.data.objects[n].type == "CAMERA"]) == 20
-    # back to tumbler for the rest
-    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
-    scene().promptgs.images = "images_4"
-    return {"note": note}
+check(import_distorted_reports_distortion, DISTORTED)
+back_to_the_scene()
 
 
 def pytest_approx(values, tol=1e-6):
@@ -162,7 +181,7 @@ def prompt_cube_box_in_job_file():
     assert box["size"] == pytest_approx([0.2, 0.3, 0.4])  # 2 × display size 0.5 × scale
     for key in ("dataset", "out", "images", "iterations", "strategy", "backend", "snapshot_every", "seed"):
         assert key in job, key
-    assert job["images"] == "images_4" and Path(job["dataset"]).name == "tumbler"
+    assert job["images"] == SCENE["small"] and Path(job["dataset"]).resolve() == Path(SCENE["path"]).resolve()
     assert not {"budget", "auto_prompts", "propose_prompts", "compact", "nproc"} & set(job)  # off / one process
     scene().promptgs.compact, scene().promptgs.nproc, scene().promptgs.propose_prompts = True, 2, True
     job_with = addon("training").build_job(bpy.context, TMP / "job_check")
@@ -186,7 +205,7 @@ def prompt_cube_box_in_job_file():
 
 @check
 def prompt_around_selected_points():
-    points = bpy.data.objects["PromptGS Sparse Points tumbler"]
+    points = points_of(SCENE)
     mesh = points.data
     n = len(mesh.vertices)
     co = np.empty(n * 3, np.float32)
@@ -317,7 +336,7 @@ def wrong_trainer_path_is_a_clear_error():
 @check
 def dataset_without_images_is_a_clear_error():
     bare = TMP / "no_images"
-    shutil.copytree(Path(config["tumbler"]) / "sparse", bare / "sparse")
+    shutil.copytree(Path(SCENE["path"]) / "sparse", bare / "sparse")
     bpy.ops.promptgs.import_colmap(directory=str(bare))
     fake_trainer("ok")
     try:
@@ -327,7 +346,7 @@ def dataset_without_images_is_a_clear_error():
         pass
     st = state()
     assert st.status == "ERROR" and "no such image folder" in st.message and "no_images" in st.message, st.message
-    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
+    back_to_the_scene()
     return {"message": st.message}
 
 
@@ -355,7 +374,8 @@ def dataset_generation_runs_in_background():
 def reconstruct_from_photos_imports_the_result():
     """sfm runs in the background, its stage line shows, and its dataset is imported."""
     fake_trainer("stepwise")  # the fake holds at its mapping stage until sfm_go exists
-    photos = Path(config["tumbler"]) / "images"
+    photos = Path(SCENE["path"]) / "images"
+    n = SCENE["n_images"]
     bpy.ops.promptgs.reconstruct(directory=str(photos))
     assert state().sfm_status == "RUNNING", (state().sfm_status, state().sfm_message)
     go = Path(state().sfm_out).parent / "sfm_go"
@@ -369,23 +389,22 @@ def reconstruct_from_photos_imports_the_result():
         time.sleep(0.01)
     assert state().sfm_status == "DONE", (state().sfm_status, state().sfm_message)
     assert any(line.startswith(("features", "matching", "mapping")) for line in lines), lines
-    assert "76 of 77 images registered" in state().sfm_message, state().sfm_message
+    assert f"{n - 1} of {n} images registered" in state().sfm_message, state().sfm_message
     root = scene().promptgs.root
     assert Path(root["promptgs_dataset"]) == Path(state().sfm_out).resolve()
-    assert len([o for o in root.children if o.type == "CAMERA"]) == 77
-    # back to the tumbler import for the rest
-    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
-    scene().promptgs.images = "images_4"
+    assert len([o for o in root.children if o.type == "CAMERA"]) == n
+    back_to_the_scene()
     return {"message": state().sfm_message, "stage_lines": sorted(set(lines))[:6]}
 
 
 @check
 def reconstruct_errors_and_cancel():
     fake_trainer("crash")
-    photos = Path(config["tumbler"]) / "images"
+    photos = Path(SCENE["path"]) / "images"
     bpy.ops.promptgs.reconstruct(directory=str(photos))
     run_until_idle(60)
-    assert state().sfm_status == "ERROR" and "only 6 of 77 images registered" in state().sfm_message, state().sfm_message
+    only = f"only 6 of {SCENE['n_images']} images registered"
+    assert state().sfm_status == "ERROR" and only in state().sfm_message, state().sfm_message
     fake_trainer("slow")
     bpy.ops.promptgs.reconstruct(directory=str(photos))
     out = Path(state().sfm_out)
@@ -852,6 +871,15 @@ def proposed_cubes_draw_orange_pixels():
     assert all(hits) and not inside and n_orange > 100, (hits, inside, n_orange)
     assert after == 0, after
     return {"drawn": True, "orange_pixels": n_orange, "renderer": gpu.platform.renderer_get()}
+
+
+# The real scenes beside the repository, when present: their imports too.
+for real in config["real"]:
+    if real["kind"] == "scene":
+        for fn in (import_scene, projection_matches_colmap, root_puts_capture_upright):
+            check(fn, real, name=f"{fn.__name__}@{real['name']}")
+    else:
+        check(import_distorted_reports_distortion, real, name=f"import_distorted_reports_distortion@{real['name']}")
 
 
 @check

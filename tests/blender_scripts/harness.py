@@ -37,16 +37,18 @@ def save():
         json.dump(results, handle, indent=1)
 
 
-def check(fn):
-    """Run a check now; record ok / the error; details a check returns are kept."""
+def check(fn, *args, name: str = ""):
+    """Run a check now (``fn(*args)``, recorded as ``name`` or the function's name); record
+    ok / the error; details a check returns are kept. Used as a decorator without args."""
+    name = name or fn.__name__
     start = time.time()
     try:
-        info = fn() or {}
-        results[fn.__name__] = {"ok": True, **info}
+        info = fn(*args) or {}
+        results[name] = {"ok": True, **info}
     except Exception as exc:  # recorded for the test to show
-        results[fn.__name__] = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
-                                "traceback": traceback.format_exc()[-3000:]}
-    results[fn.__name__]["seconds"] = round(time.time() - start, 2)
+        results[name] = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
+                         "traceback": traceback.format_exc()[-3000:]}
+    results[name]["seconds"] = round(time.time() - start, 2)
     save()
     return fn
 

@@ -1,8 +1,9 @@
 """The installed extension driving the real trainer (see test_blender_train.py).
 
-Imports tumbler, adds a prompt, runs a short CPU training through ``python -m
-promptgs_engine train`` (a separate process: this one blocks torch imports), renders
-the scene with Workbench while training goes on, then cancels a second run mid-way.
+Imports a pinhole scene (tests/scenes.py's, or tumbler), adds a prompt around its
+object, runs a short CPU training through ``python -m promptgs_engine train`` (a separate
+process: this one blocks torch imports), renders the scene with Workbench while training
+goes on, then cancels a second run mid-way.
 """
 
 import json
@@ -66,7 +67,7 @@ def setup():
     prefs().output_dir = str(TMP / "runs")
     bpy.ops.promptgs.test_trainer()
     probe = prefs().probe_result
-    bpy.ops.promptgs.import_colmap(directory=config["tumbler"], images="images_4")
+    bpy.ops.promptgs.import_colmap(directory=config["dataset"], images=config["images"])
     settings = scene().promptgs
     root = settings.root
     select_object_points(config["render_camera"], config["prompt_rect"])
@@ -170,6 +171,7 @@ def preview_dataset_camera():
     sc = scene()
     addon("importer").use_camera(sc, bpy.data.objects[config["render_camera"]])
     sc.render.resolution_percentage = 25  # the run trained on images_4, a quarter of the model's size
+    assert config["images"] == "images_4"
     info = preview_now()
     preview = addon("preview")
     image = bpy.data.images["PromptGS Preview"]
