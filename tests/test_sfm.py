@@ -364,7 +364,7 @@ def test_training_on_the_sfm_model_of_photos_matches_the_true_model(made_scenes,
     """Same photos, same steps: the PSNR on the held-out views is no more than 0.5 dB below
     that of the model the scene was made with."""
     from promptgs_engine.config import TrainConfig
-    from promptgs_engine.train import run_training
+    from promptgs_engine.run import run_training
 
     facts = made_scenes["pinhole"]
     out, _, names = photos_sfm

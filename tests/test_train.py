@@ -15,7 +15,8 @@ from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.errors import PromptGSError, TrainingError
 from promptgs_engine.evaluation import evaluate
-from promptgs_engine.train import Trainer, run_training
+from promptgs_engine.run import run_training
+from promptgs_engine.train import Trainer
 
 
 def test_training_raises_test_psnr(pinhole_scene, tmp_path):

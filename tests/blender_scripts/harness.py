@@ -9,9 +9,11 @@ by the add-on fails loudly and is recorded.
 """
 
 import json
+import os
 import sys
 import time
 import traceback
+from pathlib import Path
 
 BLOCKED = ("torch", "promptgs_engine", "pycolmap", "plyfile")
 blocked_attempts: list[str] = []
@@ -81,6 +83,72 @@ def run_until_idle(timeout: float = 300.0, on_events=None) -> None:
             return
         time.sleep(0.05)
     raise TimeoutError("the trainer run did not finish in time")
+
+
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and every process below it (read from /proc here, not with the add-on's code)."""
+    parents = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                text = (entry / "stat").read_text()
+            except OSError:
+                continue
+            parents[int(entry.name)] = int(text[text.rindex(")") + 2:].split()[1])
+    tree, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        tree.append(current)
+        todo += [child for child, parent in parents.items() if parent == current]
+    return tree
+
+
+def process_gone(pid: int) -> bool:
+    """Whether the process has exited (a zombie waiting for its parent counts as gone)."""
+    if not Path("/proc/self/stat").exists():  # no /proc (macOS): ask the kernel
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        except OSError:
+            pass
+        return False
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True
+    return text[text.rindex(")") + 2:].split()[0] == "Z"
+
+
+def cancel_and_wait(pids: list[int], gone_within: float) -> tuple[float, list[int]]:
+    """Press Cancel, follow the run to its end, wait up to ``gone_within`` s for every one
+    of ``pids`` to exit: (seconds from the press, the pids still running)."""
+    start = time.time()
+    bpy.ops.promptgs.cancel()
+    run_until_idle(60)
+    deadline = time.time() + gone_within
+    while not all(process_gone(pid) for pid in pids) and time.time() < deadline:
+        time.sleep(0.05)
+    return time.time() - start, [pid for pid in pids if not process_gone(pid)]
+
+
+def delete_selected_points(obj, select) -> None:
+    """Delete points as a user does: select them, Edit Mode, Delete (a points-only mesh on
+    4.2–5.0, a point cloud from 5.1 on)."""
+    for other in bpy.context.selected_objects:
+        other.select_set(False)
+    obj.select_set(True)
+    bpy.context.view_layer.objects.active = obj
+    if obj.type == "MESH":
+        obj.data.vertices.foreach_set("select", select)
+        bpy.ops.object.mode_set(mode="EDIT")
+        bpy.ops.mesh.delete(type="VERT")
+    else:
+        attr = obj.data.attributes.get(".selection") or obj.data.attributes.new(".selection", "BOOLEAN", "POINT")
+        attr.data.foreach_set("value", select)
+        bpy.ops.object.mode_set(mode="EDIT")
+        bpy.ops.pointcloud.delete()
+    bpy.ops.object.mode_set(mode="OBJECT")
 
 
 def forbidden_modules() -> list[str]:

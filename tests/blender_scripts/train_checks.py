@@ -8,12 +8,14 @@ goes on, then cancels a second run mid-way.
 
 import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import addon, bpy, check, finish, config, forbidden_modules, install, run_until_idle  # noqa: E402
+from harness import (addon, bpy, cancel_and_wait, check, config, delete_selected_points, finish,  # noqa: E402
+                     forbidden_modules, install, process_tree, run_until_idle)
 
 import bmesh  # noqa: E402
 import numpy as np  # noqa: E402
@@ -21,7 +23,12 @@ from mathutils import Vector  # noqa: E402
 
 TMP = Path(config["tmp"])
 scene = lambda: bpy.context.scene  # noqa: E731
-state = lambda: bpy.context.window_manager.promptgs_run  # noqa: E731
+jobs = lambda: bpy.context.window_manager.promptgs_run  # noqa: E731
+
+
+def state():
+    """The record of the run the scene shows."""
+    return addon("training").shown_record(scene())
 
 
 def prefs():
@@ -65,7 +72,8 @@ def setup():
             bpy.data.objects.remove(bpy.data.objects[name])
     prefs().python = config["python"]
     prefs().output_dir = str(TMP / "runs")
-    bpy.ops.promptgs.test_trainer()
+    bpy.ops.promptgs.test_trainer()  # in the background: the follower brings its answer
+    run_until_idle(120)
     probe = prefs().probe_result
     bpy.ops.promptgs.import_colmap(directory=config["dataset"], images=config["images"])
     settings = scene().promptgs
@@ -76,6 +84,7 @@ def setup():
     settings.strategy = config["strategy"]
     settings.backend = "cpu"
     settings.color_by = "error"
+    settings.display_style = "SPHERES"  # the Workbench image: spheres in colour-map materials
     settings.point_radius = settings.point_radius * 1.5
     return {"probe": probe}
 
@@ -133,7 +142,7 @@ def train_real_trainer():
     settings.iterations = config["iterations"]
     settings.snapshot_every = config["snapshot_every"]
     bpy.ops.promptgs.train()
-    info = {"out": state().out_dir}
+    info = {"out": state().folder}
 
     def first_snapshot_render():
         if "render_s" not in info and "PromptGS Gaussians" in bpy.data.objects:
@@ -147,8 +156,9 @@ def train_real_trainer():
     assert st.result_ply and Path(st.result_ply).is_file()
     obj = bpy.data.objects["PromptGS Gaussians"]
     display = addon("display")
-    arrays = {key: display.get_attribute(obj, key) for key in
-              ("position", "opacity", "scale", "rotation", "color", "score", "error")}
+    names = ["position", "radiance:base", "scale", "rotation", "score", "error"]
+    names += sorted((a.name for a in obj.data.attributes if a.name.startswith("radiance:sh_")), key=lambda n: int(n[12:]))
+    arrays = {key: display.get_attribute(obj, key) for key in names}
     np.savez(TMP / "object_attributes.npz", **arrays)
     info.update({"ply": st.result_ply, "n": display.point_count(obj), "status_message": st.message,
                  "psnr": st.psnr, "step": st.step, "loss_field": "PromptGS Loss Field" in bpy.data.objects})
@@ -159,7 +169,7 @@ def preview_now() -> dict:
     """Render Preview of the active camera, driven to its end; the outcome and the pixels."""
     bpy.ops.promptgs.render_preview()
     run_until_idle(config["timeout"])
-    st = state()
+    st = jobs()
     assert st.preview_status == "DONE", (st.preview_status, st.preview_message)
     image = bpy.data.images["PromptGS Preview"]
     return {"message": st.preview_message, "size": list(image.size)}
@@ -180,7 +190,7 @@ def preview_dataset_camera():
     both = bpy.data.images["PromptGS Preview | Image"]
     assert tuple(both.size) == (2 * image.size[0], image.size[1]), tuple(both.size)
     np.save(TMP / "preview_side_by_side.npy", preview.pixels(both)[..., :3])
-    info["camera_file"] = str(Path(state().out_dir) / "preview" / "camera.json")
+    info["camera_file"] = str(Path(state().folder) / "preview" / "camera.json")
     return info
 
 
@@ -209,7 +219,7 @@ def preview_user_camera():
     info = preview_now()
     image = bpy.data.images["PromptGS Preview"]
     assert tuple(image.size) == (240, 320), tuple(image.size)
-    sent = json.loads((Path(state().out_dir) / "preview" / "camera.json").read_text())
+    sent = json.loads((Path(state().folder) / "preview" / "camera.json").read_text())
     K, w2c = np.array(sent["K"]), np.array(sent["world_to_camera"])
     points = next(o for o in bpy.data.objects if o.name.startswith("PromptGS Sparse Points"))
     co = addon("display").get_attribute(points, "position")[::50]
@@ -225,6 +235,66 @@ def preview_user_camera():
     np.save(TMP / "preview_user_camera.npy", addon("preview").pixels(image)[..., :3])
     info.update({"max_error_px": max(errors), "n_points": len(errors)})
     return info
+
+
+@check
+def cycles_render_of_native_splats():
+    """5.3+: Cycles renders the finished run's splats (Blender's own) from a dataset camera,
+    at the run's image size, Standard view transform, for the PSNR comparison of the test."""
+    if not addon("display").native_splats_supported():
+        return {"native": False}
+    sc = scene()
+    sc.promptgs.display_style = "AUTO"  # Blender's own splats (setup chose spheres for Workbench)
+    assert bpy.data.objects["PromptGS Gaussians"].data.type == "GAUSSIAN_SPLAT"
+    addon("importer").use_camera(sc, bpy.data.objects[config["render_camera"]])
+    sc.render.resolution_percentage = 25  # the run trained on images_4
+    sc.render.engine = "CYCLES"
+    sc.cycles.device, sc.cycles.samples = "CPU", config.get("cycles_samples", 16)
+    sc.view_settings.view_transform, sc.view_settings.look = "Standard", "None"
+    sc.render.film_transparent = False
+    if sc.world is None:
+        sc.world = bpy.data.worlds.new("World")
+    sc.world.use_nodes = False
+    sc.world.color = (0.0, 0.0, 0.0)
+    shown = [o for o in bpy.data.objects if o.type in ("MESH", "POINTCLOUD") and not o.hide_render]
+    for o in shown:
+        o.hide_render = o.name != "PromptGS Gaussians"
+    sc.render.filepath = str(TMP / "cycles_native.png")
+    start = time.time()
+    bpy.ops.render.render(write_still=True)
+    for o in shown:
+        o.hide_render = False
+    return {"native": True, "image": sc.render.filepath, "seconds": round(time.time() - start, 1),
+            "size": [sc.render.resolution_x // 4, sc.render.resolution_y // 4]}
+
+
+@check
+def export_for_eval():
+    """The finished run's Gaussians exported as they are, and with the splats inside the
+    prompt box deleted, each into a copy of the run folder (for ``promptgs eval``)."""
+    obj = bpy.data.objects["PromptGS Gaussians"]
+    run = Path(state().out_dir)
+    display = addon("display")
+    out = {}
+    for name in ("unchanged", "cropped"):
+        copy = TMP / f"run_{name}"
+        copy.mkdir()
+        shutil.copy(run / "cfg.json", copy / "cfg.json")
+        if name == "cropped":  # delete in Edit Mode what lies in the prompt cube, as a user would
+            cube = addon("prompts").prompt_objects(scene())[0]
+            local = np.array(cube.matrix_world.inverted() @ obj.matrix_world)
+            co = display.get_attribute(obj, "position").astype(np.float64)
+            inside = (np.abs(co @ local[:3, :3].T + local[:3, 3]) <= cube.empty_display_size).all(axis=1)
+            assert 0 < inside.sum() < len(co), inside.sum()
+            delete_selected_points(obj, inside)
+            out["deleted"] = int(inside.sum())
+        path = copy / "point_cloud.ply"
+        assert bpy.ops.promptgs.export_gaussians(filepath=str(path), start_from=name == "cropped") == {"FINISHED"}
+        out[name] = str(copy)
+    out["n_left"] = display.point_count(obj)
+    assert scene().promptgs.init_ply == str(TMP / "run_cropped" / "point_cloud.ply")
+    scene().promptgs.init_ply = ""  # the trainer here may not know `init` yet
+    return out
 
 
 @check
@@ -253,6 +323,74 @@ def cancel_real_trainer():
     np.testing.assert_allclose(addon("display").get_attribute(obj, "position"), means, atol=1e-6)
     return {"message": st.message, "returncode": run.process.returncode, "snapshot_step": st.snapshot_step,
             "last_output": st.last_output}
+
+
+def drain_until(condition, timeout: float, what: str) -> None:
+    training = addon("training")
+    deadline = time.time() + timeout
+    while not condition():
+        if time.time() > deadline:
+            raise TimeoutError(f"timed out waiting for {what} ({state().status}: {state().message})")
+        training.drain_and_apply(bpy.context)
+        time.sleep(0.05)
+
+
+@check
+def resume_reaches_the_uninterrupted_result():
+    """A run saved while it trains and reopened after Blender quit shows Resume; resumed,
+    it ends with the very PLY of the same run trained without a stop (the CPU backend
+    adds in a fixed order)."""
+    training = addon("training")
+    settings = scene().promptgs
+    settings.iterations, settings.snapshot_every, settings.checkpoint_every = config["resume_iterations"], 10, 10
+    bpy.ops.promptgs.train()
+    straight = state().name
+    run_until_idle(config["timeout"])
+    assert state().status == "DONE", (state().status, state().message, state().error_lines)
+    straight_ply, straight_psnr = Path(state().result_ply), state().psnr
+    bpy.ops.promptgs.train()
+    stopped = state().name
+    drain_until(lambda: state().snapshot_step >= 20, config["timeout"], "the snapshot after a checkpoint")
+    saved = TMP / "resume.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(saved))
+    training.stop_all()  # Blender quits: the trainer stops, its checkpoint stays
+    training._ended.clear()  # a new Blender knows nothing of the old one's runs
+    bpy.ops.wm.open_mainfile(filepath=str(saved))
+    record = scene().promptgs.runs[stopped]
+    assert record.status == "INTERRUPTED" and training.resumable(record), (record.status, record.message)
+    folder = Path(record.folder)
+    assert not (folder / "point_cloud.ply").exists()
+    bpy.ops.promptgs.resume(name=stopped)
+    run_until_idle(config["timeout"])
+    record = scene().promptgs.runs[stopped]
+    assert record.status == "DONE", (record.status, record.message, record.error_lines)
+    log = (folder / "train.log").read_text()
+    resumed_at = int(log.split("resumed at step ")[1].split()[0])
+    assert resumed_at >= 10 and resumed_at % 10 == 0, resumed_at
+    assert Path(record.result_ply).read_bytes() == straight_ply.read_bytes(), "the resumed run ended elsewhere"
+    assert record.psnr == straight_psnr
+    assert addon("training").shown_path() == record.result_ply
+    return {"resumed_at": resumed_at, "psnr": record.psnr, "straight": straight, "resumed": stopped}
+
+
+@check
+def multi_rank_cancel_leaves_no_process():
+    """Cancel of a two-process run (launcher, torchrun, two ranks in their own sessions)
+    leaves none of them running."""
+    training = addon("training")
+    settings = scene().promptgs
+    settings.iterations, settings.snapshot_every, settings.nproc = 5000, 5, 2
+    try:
+        bpy.ops.promptgs.train()
+        drain_until(lambda: state().step > 0, config["timeout"], "the first step of both ranks")
+        tree = process_tree(training.current_run().pid)
+        assert len(tree) >= 4, tree  # launcher, torchrun, two ranks
+        seconds, left = cancel_and_wait(tree, 30)
+    finally:
+        settings.nproc = 1
+    assert not left, left
+    assert state().status == "CANCELLED", (state().status, state().message)
+    return {"processes": len(tree), "cancel_seconds": round(seconds, 2), "message": state().message}
 
 
 @check
