@@ -384,6 +384,39 @@ def test_model_without_images(distorted_scene: SceneFacts, tmp_path: Path) -> No
     expect_error(ds, "no registered images")
 
 
+def _drop_first_image_text(model: Path) -> int:
+    """Remove the first image of a text model from images.txt; returns its id."""
+    lines = (model / "images.txt").read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    image_id = int(lines[first].split()[0])
+    (model / "images.txt").write_text("\n".join(lines[:first] + lines[first + 2:]) + "\n")
+    return image_id
+
+
+def _drop_first_image_binary(model: Path) -> int:
+    """Remove the first image record of images.bin (COLMAP's layout); returns its id."""
+    data = (model / "images.bin").read_bytes()
+    count, image_id = struct.unpack_from("<QI", data, 0)
+    name_end = data.index(b"\0", 8 + 4 + 7 * 8 + 4) + 1  # id, qvec and tvec, camera id, then the name
+    n_points2d = struct.unpack_from("<Q", data, name_end)[0]
+    (model / "images.bin").write_bytes(struct.pack("<Q", count - 1) + data[name_end + 8 + 24 * n_points2d:])
+    return image_id
+
+
+@pytest.mark.parametrize("kind", ["distorted", "pinhole"])  # text, binary
+def test_tracks_naming_a_missing_image_name_the_model(made_scenes: dict, kind: str, tmp_path: Path) -> None:
+    """A model whose points' tracks name an image it does not list (an image removed by
+    hand): one line naming the model folder and the image, not pycolmap's IndexError."""
+    facts = made_scenes[kind]
+    ds = copy_scene(facts.path, tmp_path / kind)
+    model = ds / "sparse" / "0"
+    for name in ("frames", "rigs"):  # only the tracks name the image then (a legacy model)
+        for f in model.glob(f"{name}.*"):
+            f.unlink()
+    image_id = (_drop_first_image_text if facts.form == "text" else _drop_first_image_binary)(model)
+    expect_error(ds, str(model), "cannot read the COLMAP model", f"Image with ID {image_id} does not exist")
+
+
 def test_zero_points(distorted_scene: SceneFacts, tmp_path: Path) -> None:
     ds = copy_scene(distorted_scene.path, tmp_path / "f")
     (ds / "sparse" / "0" / "points3D.txt").write_text("# no points\n")
