@@ -273,7 +273,7 @@ def export_for_eval():
     """The finished run's Gaussians exported as they are, and with the splats inside the
     prompt box deleted, each into a copy of the run folder (for ``promptgs eval``)."""
     obj = bpy.data.objects["PromptGS Gaussians"]
-    run = Path(state().out_dir)
+    run = Path(state().folder)
     display = addon("display")
     out = {}
     for name in ("unchanged", "cropped"):
