@@ -172,6 +172,22 @@ def test_exported_gaussians_evaluate(run):
     assert np.isfinite(cropped["psnr"]) and cropped["psnr"] != trained["psnr"]
 
 
+def test_a_run_trains_from_the_cleaned_export(run):
+    """*Train From It*: the run after the export starts from the exported file's Gaussians
+    (as many as the first run's, less those deleted in the prompt box) and finishes with a
+    PLY that ``promptgs eval`` scores."""
+    from promptgs_engine.evaluation import evaluate_run
+
+    tmp, results = run
+    exported = _ok(results, "export_for_eval")
+    info = _ok(results, "train_from_the_cleaned_export")
+    trained = json.loads((Path(_ok(results, "train_real_trainer")["out"]) / "metrics.json").read_text())
+    assert info["init"] == str(Path(exported["cropped"]) / "point_cloud.ply")
+    assert info["initial_gaussians"] == exported["n_left"] == trained["n_gaussians"] - exported["deleted"]
+    again = evaluate_run(Path(info["out"]), quiet=True)
+    assert again["n_gaussians"] == info["n_final"] and np.isfinite(again["psnr"])
+
+
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a.astype(np.float64) - b) ** 2)))
 

@@ -68,6 +68,7 @@ def test_a_far_sky_shell_starts_beside_the_sfm_points_unless_turned_off(toy, tmp
     with_sky = Trainer(TrainConfig(dataset=str(toy), out=str(tmp_path / "a")), scene=scene, quiet=True)
     assert with_sky.n_sky_points > 0
     assert with_sky.n_gaussians == n_sfm + with_sky.n_sky_points
+    assert with_sky.run_summary()["initial_gaussians"] == with_sky.n_gaussians  # train.json
     # The shell lies outside every SfM point, seen from the cameras' centre.
     centre = torch.stack([c.center for c in scene.train_cameras]).mean(dim=0)
     shell = with_sky.params["means"][n_sfm:].detach().cpu()  # on the GPU where "auto" picks it

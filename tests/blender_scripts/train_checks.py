@@ -3,7 +3,9 @@
 Imports a pinhole scene (tests/scenes.py's, or tumbler), adds a prompt around its
 object, runs a short CPU training through ``python -m promptgs_engine train`` (a separate
 process: this one blocks torch imports), renders the scene with Workbench while training
-goes on, then cancels a second run mid-way.
+goes on, previews it, exports its Gaussians (and trains again from them after deleting
+those in the prompt box), cancels a run mid-way, resumes a reopened one and cancels a
+two-process one.
 """
 
 import json
@@ -207,7 +209,7 @@ def preview_user_camera():
     data.shift_x, data.shift_y = 0.05, -0.03
     cam = bpy.data.objects.new("Placed Camera", data)
     sc.collection.objects.link(cam)
-    # a step back from a dataset camera and a turn, so the view differs but sees the cup
+    # a step back from a dataset camera and a turn, so the view differs but sees the object
     back = reference.matrix_world.to_3x3() @ Vector((0.0, 0.0, 1.0))
     cam.matrix_world = reference.matrix_world.copy()
     cam.location = reference.matrix_world.translation + 0.6 * back
@@ -292,9 +294,39 @@ def export_for_eval():
         assert bpy.ops.promptgs.export_gaussians(filepath=str(path), start_from=name == "cropped") == {"FINISHED"}
         out[name] = str(copy)
     out["n_left"] = display.point_count(obj)
-    assert scene().promptgs.init_ply == str(TMP / "run_cropped" / "point_cloud.ply")
-    scene().promptgs.init_ply = ""  # the trainer here may not know `init` yet
+    assert scene().promptgs.init_ply == str(TMP / "run_cropped" / "point_cloud.ply")  # Train From It
     return out
+
+
+@check
+def train_from_the_cleaned_export():
+    """The next run starts from what *Export Gaussians* wrote with Train From It (the
+    Gaussians left after deleting those in the prompt box): the job file and the run's
+    cfg.json name the file, the run starts from exactly its Gaussians (train.json, and the
+    first snapshot, taken before the first refinement), and it finishes."""
+    settings = scene().promptgs
+    path = TMP / "run_cropped" / "point_cloud.ply"
+    assert settings.init_ply == str(path), settings.init_ply
+    exported = len(addon("plyio").read_vertices(path))
+    settings.iterations, settings.snapshot_every = config["iterations"], 5  # refinement starts at step 10
+    try:
+        bpy.ops.promptgs.train()
+        run_until_idle(config["timeout"])
+    finally:
+        settings.init_ply, settings.snapshot_every = "", config["snapshot_every"]
+    st = state()
+    assert st.status == "DONE", (st.status, st.message, st.error_lines)
+    folder = Path(st.folder)
+    assert json.loads(Path(st.job_path).read_text())["init"] == str(path)
+    assert json.loads((folder / "cfg.json").read_text())["init"] == str(path)
+    started = json.loads((folder / "train.json").read_text())["initial_gaussians"]
+    first = min((folder / "snapshots").glob("step_*.npz"))
+    with np.load(first) as npz:
+        in_first = len(npz["means"])
+    assert started == exported == in_first and first.name == "step_000005.npz", (started, exported, in_first, first.name)
+    assert Path(st.result_ply).is_file() and st.step == st.iterations, (st.result_ply, st.step, st.iterations)
+    return {"out": str(folder), "init": str(path), "exported": exported, "initial_gaussians": started,
+            "first_snapshot": first.name, "n_final": st.n_gaussians, "psnr": st.psnr}
 
 
 @check
