@@ -9,8 +9,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import (addon, blocked_attempts, bpy, cancel_and_wait, check, config, delete_selected_points, finish,  # noqa: E402
-                     forbidden_modules, install, process_gone, run_until_idle)
+from harness import (addon, blocked_attempts, bpy, cancel_and_wait, check, config, delete_selected_points,  # noqa: E402
+                     drain_until, finish, forbidden_modules, install, process_gone, run_until_idle)
 
 import numpy as np  # noqa: E402
 from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
@@ -78,17 +78,6 @@ def prefs_lines() -> list[str]:
     log = []
     type(prefs()).draw(PrefsView(log), bpy.context)
     return log
-
-
-def drain_until(condition, timeout: float = 60.0, what: str = "the condition") -> None:
-    """Drive the follower (as its timer would) until ``condition()``."""
-    training = addon("training")
-    deadline = time.time() + timeout
-    while not condition():
-        if time.time() > deadline:
-            raise TimeoutError(f"timed out waiting for {what}")
-        training.drain_and_apply(bpy.context)
-        time.sleep(0.02)
 
 
 def live_run():

@@ -85,6 +85,20 @@ def run_until_idle(timeout: float = 300.0, on_events=None) -> None:
     raise TimeoutError("the trainer run did not finish in time")
 
 
+def drain_until(condition, timeout: float = 60.0, what: str = "the condition") -> None:
+    """Drive the follower (as its timer would) until ``condition()``; a timeout names
+    ``what`` and the shown run's state."""
+    training = addon("training")
+    deadline = time.time() + timeout
+    while not condition():
+        if time.time() > deadline:
+            record = training.shown_record(bpy.context.scene)
+            shown = f" ({record.status}: {record.message})" if record is not None else ""
+            raise TimeoutError(f"timed out waiting for {what}{shown}")
+        training.drain_and_apply(bpy.context)
+        time.sleep(0.02)
+
+
 def process_tree(pid: int) -> list[int]:
     """``pid`` and every process below it (read from /proc here, not with the add-on's code)."""
     parents = {}

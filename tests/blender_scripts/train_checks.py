@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import (addon, bpy, cancel_and_wait, check, config, delete_selected_points, finish,  # noqa: E402
-                     forbidden_modules, install, process_tree, run_until_idle)
+from harness import (addon, bpy, cancel_and_wait, check, config, delete_selected_points, drain_until,  # noqa: E402
+                     finish, forbidden_modules, install, process_tree, run_until_idle)
 
 import bmesh  # noqa: E402
 import numpy as np  # noqa: E402
@@ -355,16 +355,6 @@ def cancel_real_trainer():
     np.testing.assert_allclose(addon("display").get_attribute(obj, "position"), means, atol=1e-6)
     return {"message": st.message, "returncode": run.process.returncode, "snapshot_step": st.snapshot_step,
             "last_output": st.last_output}
-
-
-def drain_until(condition, timeout: float, what: str) -> None:
-    training = addon("training")
-    deadline = time.time() + timeout
-    while not condition():
-        if time.time() > deadline:
-            raise TimeoutError(f"timed out waiting for {what} ({state().status}: {state().message})")
-        training.drain_and_apply(bpy.context)
-        time.sleep(0.05)
 
 
 @check
