@@ -211,10 +211,12 @@ def test_cycles_renders_the_run_like_promptgs_render(run, tmp_path):
     photo = np.asarray(Image.open(run_photo(out, camera)).convert("RGB"), np.float32) / 255.0
     assert cycles.shape == ours.shape == photo.shape, (cycles.shape, ours.shape)
     against_ours, against_photo = _psnr(cycles, ours), _psnr(cycles, photo)
-    # the same scene in the same place and colours: far closer to our render than a
-    # picture shifted by a tenth of its width is
-    shifted = _psnr(np.roll(cycles, cycles.shape[1] // 10, axis=1), ours)
-    assert against_ours > 20.0 and against_ours > shifted + 5.0, (against_ours, shifted)
+    # the same scene in the same place and colours: the match peaks where the pictures line
+    # up (shifted by 3 pixels or by a tenth of the width, either way along either axis, it
+    # loses more than 1 dB; measured on the made scene at 84x63: 1.4 dB at 3 pixels)
+    tenth = cycles.shape[1] // 10
+    shifted = max(_psnr(np.roll(cycles, d, axis=axis), ours) for axis in (0, 1) for d in (-3, 3, -tenth, tenth))
+    assert against_ours > 20.0 and against_ours > shifted + 1.0, (against_ours, shifted)
     assert against_photo > 12.0, against_photo
     print(f"Cycles vs promptgs render {against_ours:.2f} dB, vs photo {against_photo:.2f} dB, "
           f"promptgs render vs photo {_psnr(ours, photo):.2f} dB, {info['seconds']} s")

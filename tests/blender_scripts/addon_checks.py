@@ -579,6 +579,7 @@ def blender_import_agrees_with_ours():
     if not addon("display").native_splats_supported():
         return {"native": False}
     display, results = addon("display"), addon("results")
+    run = next(r for r in reversed(scene().promptgs.runs) if r.last_snapshot)  # shown again at the end
     rng = np.random.default_rng(4)
     n = 400
     table = rng.normal(size=(n, len(INRIA_NAMES))).astype("<f4")
@@ -612,6 +613,8 @@ def blender_import_agrees_with_ours():
                                    rtol=1e-5, atol=2e-6, err_msg=f"snapshot {name}")
     assert ours.data.type == "GAUSSIAN_SPLAT" and "radiance:sh_0" not in ours.data.attributes
     bpy.data.objects.remove(theirs)
+    bpy.ops.promptgs.show_run(name=run.name)  # the later checks work on the run's objects, as on the other lines
+    assert results.LOSS_FIELD in bpy.data.objects
     return {"native": True, "compared": compared, "snapshot_compared": int(inside.sum())}
 
 
