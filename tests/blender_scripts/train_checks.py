@@ -244,7 +244,7 @@ def cycles_render_of_native_splats():
     """5.3+: Cycles renders the finished run's splats (Blender's own) from a dataset camera,
     at the run's image size, Standard view transform, for the PSNR comparison of the test."""
     if not addon("display").native_splats_supported():
-        return {"native": False}
+        return {"native": False, "blender": list(bpy.app.version)}
     sc = scene()
     sc.promptgs.display_style = "AUTO"  # Blender's own splats (setup chose spheres for Workbench)
     assert bpy.data.objects["PromptGS Gaussians"].data.type == "GAUSSIAN_SPLAT"
@@ -266,7 +266,7 @@ def cycles_render_of_native_splats():
     bpy.ops.render.render(write_still=True)
     for o in shown:
         o.hide_render = False
-    return {"native": True, "image": sc.render.filepath, "seconds": round(time.time() - start, 1),
+    return {"native": True, "blender": list(bpy.app.version), "image": sc.render.filepath, "seconds": round(time.time() - start, 1),
             "size": [sc.render.resolution_x // 4, sc.render.resolution_y // 4]}
 
 
