@@ -146,6 +146,7 @@ class Trainer:
             load_gaussians(cfg.init, sh_degree=cfg.sh_degree) if cfg.init
             else init_from_points(points, colors, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity)
         ).to(self.device)
+        self.n_initial = self.n_gaussians  # what the run starts from (train.json)
         self.optimizers = make_optimizers(self.params, cfg, self.scene.extent, self.batch_size)
         gamma = 0.01 ** (1.0 / self.total_steps)
         self.schedulers = [torch.optim.lr_scheduler.ExponentialLR(self.optimizers["means"], gamma=gamma)]
@@ -612,6 +613,7 @@ class Trainer:
             "steps": self.step,  # with PromptGS's related steps (focus.run_length)
             "train_seconds": self.train_seconds,
             "n_gaussians": self.n_gaussians,
+            "initial_gaussians": self.n_initial,  # the --init file's, or the SfM points (and sky shell)
             "backend": self.backend,
             "strategy": self.cfg.strategy,
             "peak_rss_mb": peak_rss_mb(),

@@ -96,6 +96,11 @@ def _has_bpy(python_version: str, bpy_version: str) -> bool:
         return False
 
 
+def own_line() -> BlenderLine | None:
+    """The line whose bpy the interpreter running the tests has, if any."""
+    return next((line for line in LINES if _has_bpy(line.python, line.bpy)), None)
+
+
 def line_python(line: BlenderLine, cache: Path | None = None) -> str:
     """A Python with the line's bpy: this interpreter, or the line's cached virtual environment,
     made now if missing (under a lock, so concurrent test runs share one). Raises

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from blender_lines import LINES, BlenderLine, LineUnavailable
+from scenes import FERN, TUMBLER, SceneFacts, real_scene
 
 pytest.importorskip("bpy", reason="needs the bpy module")
 pytestmark = pytest.mark.blender
@@ -28,13 +29,14 @@ REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = REPO / "tests" / "blender_scripts"
 
 
-def projections(tumbler: Path, n_cameras: int = 6, n_points: int = 5) -> list[dict]:
-    """Pixels of a few points in a few images, projected by pycolmap."""
+def projections(model_dir: Path, n_cameras: int = 6, n_points: int = 5) -> list[dict]:
+    """Pixels of a few points in a few images (spread over the sorted names), projected by pycolmap."""
     pycolmap = pytest.importorskip("pycolmap")
-    rec = pycolmap.Reconstruction(str(tumbler / "sparse" / "0"))
+    rec = pycolmap.Reconstruction(str(model_dir))
     out = []
     images = sorted(rec.images.values(), key=lambda im: im.name)
-    for image in images[:: max(1, len(images) // n_cameras)][:n_cameras]:
+    for index in np.linspace(0, len(images) - 1, n_cameras).astype(int):
+        image = images[index]
         count = 0
         for point in rec.points3D.values():
             uv = image.project_point(point.xyz)
@@ -48,6 +50,21 @@ def projections(tumbler: Path, n_cameras: int = 6, n_points: int = 5) -> list[di
             if count == n_points:
                 break
     return out
+
+
+def scene_config(facts: SceneFacts) -> dict:
+    """What the Blender checks know of a scene (tests/scenes.py), as JSON."""
+    config = {"name": facts.name, "path": str(facts.path), "n_images": facts.n_images, "n_points": facts.n_points,
+              "size": list(facts.size), "small": facts.small, "distortion_words": list(facts.distortion_words),
+              "background": facts.names[3]}
+    if not facts.distortion_words:
+        config["projections"] = projections(facts.model_dir)
+    return config
+
+
+def real_scenes() -> list[tuple[str, SceneFacts]]:
+    """The real scenes beside the repository that the import checks also run on: (kind, facts)."""
+    return [(kind, facts) for kind, facts in (("scene", TUMBLER), ("distorted", FERN)) if real_scene(facts)]
 
 
 def pinhole_dataset(folder: Path) -> list[dict]:
@@ -75,18 +92,19 @@ def pinhole_dataset(folder: Path) -> list[dict]:
     return out
 
 
-def prepare(tmp: Path, shared_data: Path, zip_path: Path) -> Path:
-    """Write the fake trainer wrapper and the config; returns the config path."""
+def prepare(tmp: Path, made: dict[str, SceneFacts], zip_path: Path) -> Path:
+    """Write the fake trainer wrapper and the config; returns the config path. The checks
+    run on the made scenes; the real ones add their import checks (``NAME@SCENE``)."""
     fake = tmp / "fake_python"
     fake.write_text(f"#!/bin/sh\nexec {sys.executable} {SCRIPTS / 'fake_trainer.py'} \"$@\"\n")
     fake.chmod(fake.stat().st_mode | stat.S_IEXEC)
     slow = tmp / "slow_python"  # this interpreter (it has the engine), after a 2 s pause
     slow.write_text(f"#!/bin/sh\nsleep 2\nexec {sys.executable} \"$@\"\n")
     slow.chmod(slow.stat().st_mode | stat.S_IEXEC)
-    config = {"zip": str(zip_path), "tmp": str(tmp), "tumbler": str(shared_data / "tumbler"),
-              "fern": str(shared_data / "fern"), "fake_python": str(fake), "slow_python": str(slow),
+    config = {"zip": str(zip_path), "tmp": str(tmp), "scene": scene_config(made["pinhole"]),
+              "distorted": scene_config(made["distorted"]), "fake_python": str(fake), "slow_python": str(slow),
               "repo": str(REPO), "home": str(tmp / "home"),
-              "projections": projections(shared_data / "tumbler"),
+              "real": [dict(scene_config(facts), kind=kind) for kind, facts in real_scenes()],
               "pinhole": str(tmp / "pinhole"), "pinhole_projections": pinhole_dataset(tmp / "pinhole")}
     (tmp / "config.json").write_text(json.dumps(config))
     (tmp / "home").mkdir()
@@ -94,7 +112,7 @@ def prepare(tmp: Path, shared_data: Path, zip_path: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
-def line_results(tmp_path_factory, shared_data, blender_envs, extension_zip):
+def line_results(tmp_path_factory, made_scenes, blender_envs, extension_zip):
     """``line_results(line)``: (folder, check outcomes) of the add-on checks run in that
     Blender line's bpy, once per line (a fresh user profile each)."""
     done: dict = {}
@@ -107,7 +125,7 @@ def line_results(tmp_path_factory, shared_data, blender_envs, extension_zip):
                 done[line] = exc
                 return results(line)
             tmp = tmp_path_factory.mktemp(f"addon-{line.id}")
-            config = prepare(tmp, shared_data, extension_zip)
+            config = prepare(tmp, made_scenes, extension_zip)
             env = dict(os.environ, HOME=str(tmp / "home"))
             start = time.time()
             proc = subprocess.run([python, str(SCRIPTS / "addon_checks.py"), str(config), str(tmp / "results.json")],
@@ -127,8 +145,10 @@ def line_results(tmp_path_factory, shared_data, blender_envs, extension_zip):
     return results
 
 
-CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap", "root_puts_capture_upright", "non_square_pixels_project_exactly",
-          "import_fern_reports_distortion", "prompt_cube_box_in_job_file", "prompt_around_selected_points",
+SCENE_CHECKS = ["import_scene", "projection_matches_colmap", "root_puts_capture_upright"]
+DISTORTED_CHECKS = ["import_distorted_reports_distortion"]
+CHECKS = ["installed_and_enabled", *SCENE_CHECKS, "non_square_pixels_project_exactly",
+          *DISTORTED_CHECKS, "prompt_cube_box_in_job_file", "prompt_around_selected_points",
           "train_with_recorded_events_updates_objects", "cancel_keeps_last_snapshot",
           "crashed_trainer_shows_error_lines", "wrong_trainer_path_is_a_clear_error",
           "dataset_without_images_is_a_clear_error", "dataset_generation_runs_in_background",
@@ -143,10 +163,12 @@ CHECKS = ["installed_and_enabled", "import_tumbler", "projection_matches_colmap"
           "cancel_ends_every_process_of_the_trainer", "overlay_handler_follows_register",
           "proposed_cubes_draw_orange_pixels", "loading_a_file_detaches_the_run",
           "reopened_file_shows_result_or_resume", "never_imports_torch_or_engine"]
+REAL_CHECKS = [f"{name}@{facts.name}" for kind, facts in real_scenes()
+               for name in (SCENE_CHECKS if kind == "scene" else DISTORTED_CHECKS)]
 
 
 @pytest.mark.parametrize("line", LINES, ids=str)
-@pytest.mark.parametrize("name", CHECKS)
+@pytest.mark.parametrize("name", CHECKS + REAL_CHECKS)
 def test_blender(line_results, line, name):
     _, results = line_results(line)
     assert name in results, f"check {name} did not run in Blender {line.name}"
@@ -253,11 +275,11 @@ def _blender_binary() -> str | None:
     return binary if (major, minor) >= (4, 2) else None
 
 
-def test_same_checks_under_blender_binary(tmp_path, shared_data, extension_zip):
+def test_same_checks_under_blender_binary(tmp_path, made_scenes, extension_zip):
     binary = _blender_binary()
     if binary is None:
         pytest.skip("no Blender ≥ 4.2 binary (set $BLENDER)")
-    config = prepare(tmp_path, shared_data, extension_zip)
+    config = prepare(tmp_path, made_scenes, extension_zip)
     env = dict(os.environ, HOME=str(tmp_path / "home"))
     done = subprocess.run([binary, "-b", "--factory-startup", "--python-exit-code", "1", "--python",
                            str(SCRIPTS / "addon_checks.py"), "--", str(config), str(tmp_path / "results.json")],

@@ -55,35 +55,41 @@ def _compare_with_pycolmap(model: colmap.Model, path: Path) -> None:
     np.testing.assert_array_equal(model.colors[order], [rec.points3D[i].color for i in ids])
 
 
-def test_binary_model_matches_pycolmap(shared_data):
-    path = colmap.find_model_dir(shared_data / "tumbler")
+def test_binary_model_matches_pycolmap(pinhole_scene):
+    path = colmap.find_model_dir(pinhole_scene.path)
+    assert sorted(path.glob("*.bin")) and not sorted(path.glob("*.txt"))
     model = colmap.read_model(path)
-    assert len(model.images) == 77 and len(model.points) == 9262
+    assert len(model.images) == pinhole_scene.n_images and len(model.points) == pinhole_scene.n_points
+    assert {i: c.model for i, c in model.cameras.items()} == pinhole_scene.models
     _compare_with_pycolmap(model, path)
 
 
-def test_text_model_matches_pycolmap(shared_data):
-    path = colmap.find_model_dir(shared_data / "fern")
+def test_text_model_matches_pycolmap(distorted_scene):
+    path = colmap.find_model_dir(distorted_scene.path)
+    assert sorted(path.glob("*.txt")) and not sorted(path.glob("*.bin"))
     model = colmap.read_model(path)
-    assert len(model.images) == 20 and model.cameras[1].model == "SIMPLE_RADIAL"
+    assert len(model.images) == distorted_scene.n_images and len(model.points) == distorted_scene.n_points
+    assert {i: c.model for i, c in model.cameras.items()} == distorted_scene.models
     _compare_with_pycolmap(model, path)
 
 
-def test_text_and_binary_forms_agree(shared_data, tmp_path):
+def test_text_and_binary_forms_agree(pinhole_scene, tmp_path):
     pycolmap = pytest.importorskip("pycolmap")
-    rec = pycolmap.Reconstruction(str(shared_data / "tumbler" / "sparse" / "0"))
+    rec = pycolmap.Reconstruction(str(pinhole_scene.model_dir))
     rec.write_text(str(tmp_path))
-    text, binary = colmap.read_model(tmp_path), colmap.read_model(shared_data / "tumbler" / "sparse" / "0")
+    text, binary = colmap.read_model(tmp_path), colmap.read_model(pinhole_scene.model_dir)
     assert [im.name for im in text.sorted_images()] == [im.name for im in binary.sorted_images()]
     np.testing.assert_allclose(text.points, binary.points, atol=1e-9)
     _compare_with_pycolmap(text, tmp_path)
 
 
-def test_distortion_is_reported(shared_data):
-    model = colmap.read_model(colmap.find_model_dir(shared_data / "fern"))
-    note = model.cameras[1].distortion_note()
-    assert "SIMPLE_RADIAL" in note and "k=0.01975" in note
-    assert colmap.read_model(colmap.find_model_dir(shared_data / "tumbler")).cameras[1].distortion_note() == ""
+def test_distortion_is_reported(distorted_scene, pinhole_scene):
+    model = colmap.read_model(colmap.find_model_dir(distorted_scene.path))
+    note = "; ".join(c.distortion_note() for c in model.cameras.values())
+    for word in distorted_scene.distortion_words:
+        assert word in note, (word, note)
+    pinhole = colmap.read_model(colmap.find_model_dir(pinhole_scene.path))
+    assert all(c.distortion_note() == "" for c in pinhole.cameras.values())
 
 
 def test_bad_models_name_the_file(tmp_path):
@@ -100,10 +106,13 @@ def test_bad_models_name_the_file(tmp_path):
         colmap.read_model(tmp_path)
 
 
-def test_projection_through_blender_camera_settings(shared_data):
-    """Blender's view frame from the camera settings reproduces COLMAP's pixel."""
-    model = colmap.read_model(colmap.find_model_dir(shared_data / "tumbler"))
-    for image in model.sorted_images()[:5]:
+def test_projection_through_blender_camera_settings(pinhole_scene):
+    """Blender's view frame from the camera settings reproduces COLMAP's pixel (in the made
+    scene for both of its cameras, one with non-square pixels)."""
+    model = colmap.read_model(colmap.find_model_dir(pinhole_scene.path))
+    images = model.sorted_images()[:5]
+    assert len({image.camera_id for image in images}) >= min(2, len(model.cameras))
+    for image in images:
         cam = model.cameras[image.camera_id]
         fx, fy, cx, cy = cam.pinhole()
         s = coords.blender_camera_settings(cam.width, cam.height, fx, fy, cx, cy)

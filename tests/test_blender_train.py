@@ -1,8 +1,10 @@
 """The installed extension with the real trainer, in every supported Blender line.
 
 For each line of tests/blender_lines.py, tests/blender_scripts/train_checks.py runs in one
-bpy subprocess of that line (HOME in a temporary folder): a short CPU run and a cancel.
-The trainer is ``python -m promptgs_engine train`` with this interpreter. The run of the
+bpy subprocess of that line (HOME in a temporary folder): a short CPU run and a cancel, on
+the pinhole scene of tests/scenes.py; with ../shared/data beside the repository, also on
+tumbler in the project's own line (the one whose bpy runs the tests). The trainer is
+``python -m promptgs_engine train`` with this interpreter. The tumbler run in the
 project's own line also renders docs/images/blender_training.png (Workbench, from a
 dataset camera) when PROMPTGS_UPDATE_DOCS_IMAGE=1, else into the test's temporary folder.
 """
@@ -18,32 +20,35 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from blender_lines import LINES, LineUnavailable
+from blender_lines import LINES, LineUnavailable, own_line
+from scenes import TUMBLER, real_scene
 
 pytest.importorskip("bpy", reason="needs the bpy module")
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = REPO / "tests" / "blender_scripts"
+RUNS = [(line, "pinhole") for line in LINES] + ([(own_line() or LINES[-1], "tumbler")] if real_scene(TUMBLER) else [])
 
 
-@pytest.fixture(scope="module", params=LINES, ids=str)
-def run(request, tmp_path_factory, shared_data, blender_envs, extension_zip):
+@pytest.fixture(scope="module", params=RUNS, ids=lambda run: f"{run[0].id}-{run[1]}")
+def run(request, tmp_path_factory, made_scenes, blender_envs, extension_zip):
     pytest.importorskip("promptgs_engine.train", reason="needs the trainer")
-    line = request.param
+    line, scene_name = request.param
+    facts = made_scenes[scene_name] if scene_name in made_scenes else TUMBLER
     try:
         python = blender_envs.python(line)
     except LineUnavailable as exc:
         pytest.skip(str(exc))
-    tmp = tmp_path_factory.mktemp(f"train-{line.id}")
-    update_docs = bool(os.environ.get("PROMPTGS_UPDATE_DOCS_IMAGE")) and python == sys.executable
+    tmp = tmp_path_factory.mktemp(f"train-{line.id}-{scene_name}")
+    update_docs = bool(os.environ.get("PROMPTGS_UPDATE_DOCS_IMAGE")) and python == sys.executable and facts is TUMBLER
     image = REPO / "docs" / "images" / "blender_training.png" if update_docs else tmp / "blender_training.png"
     image.parent.mkdir(parents=True, exist_ok=True)
     strategy = "promptgs" if (REPO / "promptgs_engine" / "strategies" / "promptgs.py").is_file() else "3dgs"
     config = {"zip": str(extension_zip), "tmp": str(tmp), "python": sys.executable,
-              "tumbler": str(shared_data / "tumbler"), "iterations": 20, "snapshot_every": 10,
-              "strategy": strategy, "timeout": 240, "resume_iterations": 60, "image": str(image), "render_camera": "12.jpg",
-              "prompt_rect": [210, 160, 560, 380],  # the cup in 12.jpg
+              "dataset": str(facts.path), "images": facts.small, "iterations": 20, "snapshot_every": 10,
+              "strategy": strategy, "timeout": 240, "resume_iterations": 60, "image": str(image),
+              "render_camera": facts.render_camera, "prompt_rect": list(facts.prompt_rect),  # the scene's object in that view
               "update_docs": update_docs}
     (tmp / "config.json").write_text(json.dumps(config))
     (tmp / "home").mkdir()
@@ -167,21 +172,39 @@ def test_exported_gaussians_evaluate(run):
     assert np.isfinite(cropped["psnr"]) and cropped["psnr"] != trained["psnr"]
 
 
+def test_a_run_trains_from_the_cleaned_export(run):
+    """*Train From It*: the run after the export starts from the exported file's Gaussians
+    (as many as the first run's, less those deleted in the prompt box) and finishes with a
+    PLY that ``promptgs eval`` scores."""
+    from promptgs_engine.evaluation import evaluate_run
+
+    tmp, results = run
+    exported = _ok(results, "export_for_eval")
+    info = _ok(results, "train_from_the_cleaned_export")
+    trained = json.loads((Path(_ok(results, "train_real_trainer")["out"]) / "metrics.json").read_text())
+    assert info["init"] == str(Path(exported["cropped"]) / "point_cloud.ply")
+    assert info["initial_gaussians"] == exported["n_left"] == trained["n_gaussians"] - exported["deleted"]
+    again = evaluate_run(Path(info["out"]), quiet=True)
+    assert again["n_gaussians"] == info["n_final"] and np.isfinite(again["psnr"])
+
+
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a.astype(np.float64) - b) ** 2)))
 
 
 def test_cycles_renders_the_run_like_promptgs_render(run, tmp_path):
     """5.3+: Cycles' render of Blender's own splats from a dataset camera against the photo
-    and against ``promptgs render`` of that camera (PSNR)."""
+    and against ``promptgs render`` of that camera (PSNR). Before 5.3 the add-on finds no
+    splats of Blender's own (and there is nothing to render)."""
     from PIL import Image
 
     from promptgs_engine.evaluation import render_run
 
     tmp, results = run
     info = _ok(results, "cycles_render_of_native_splats")
+    assert info["native"] == (tuple(info["blender"][:2]) >= (5, 3)), info
     if not info["native"]:
-        pytest.skip("Blender draws Gaussian splats itself from 5.3 on")
+        return
     out = Path(_ok(results, "train_real_trainer")["out"])
     camera = json.loads((tmp / "config.json").read_text())["render_camera"]
     [path] = render_run(out, tmp_path, [camera], quiet=True)
@@ -190,10 +213,12 @@ def test_cycles_renders_the_run_like_promptgs_render(run, tmp_path):
     photo = np.asarray(Image.open(run_photo(out, camera)).convert("RGB"), np.float32) / 255.0
     assert cycles.shape == ours.shape == photo.shape, (cycles.shape, ours.shape)
     against_ours, against_photo = _psnr(cycles, ours), _psnr(cycles, photo)
-    # the same scene in the same place and colours: far closer to our render than a
-    # picture shifted by a tenth of its width is
-    shifted = _psnr(np.roll(cycles, cycles.shape[1] // 10, axis=1), ours)
-    assert against_ours > 20.0 and against_ours > shifted + 5.0, (against_ours, shifted)
+    # the same scene in the same place and colours: the match peaks where the pictures line
+    # up (shifted by 3 pixels or by a tenth of the width, either way along either axis, it
+    # loses more than 1 dB; measured on the made scene at 84x63: 1.4 dB at 3 pixels)
+    tenth = cycles.shape[1] // 10
+    shifted = max(_psnr(np.roll(cycles, d, axis=axis), ours) for axis in (0, 1) for d in (-3, 3, -tenth, tenth))
+    assert against_ours > 20.0 and against_ours > shifted + 1.0, (against_ours, shifted)
     assert against_photo > 12.0, against_photo
     print(f"Cycles vs promptgs render {against_ours:.2f} dB, vs photo {against_photo:.2f} dB, "
           f"promptgs render vs photo {_psnr(ours, photo):.2f} dB, {info['seconds']} s")
@@ -251,7 +276,7 @@ def test_set_up_trainer_makes_an_environment_that_trains(tmp_path, toy, extensio
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process tree from /proc")
 @pytest.mark.parametrize("line", LINES, ids=str)
-def test_a_killed_blender_leaves_no_trainer_running(line, tmp_path, shared_data, blender_envs, extension_zip):
+def test_a_killed_blender_leaves_no_trainer_running(line, tmp_path, made_scenes, blender_envs, extension_zip):
     """Blender (this line's bpy) starts a two-process training and is killed (SIGKILL: no
     handler of its runs): every process of the trainer is gone within seconds (the
     lifeline: the pipe on their stdin closes with Blender)."""
@@ -262,7 +287,7 @@ def test_a_killed_blender_leaves_no_trainer_running(line, tmp_path, shared_data,
     except LineUnavailable as exc:
         pytest.skip(str(exc))
     config = {"zip": str(extension_zip), "tmp": str(tmp_path), "python": sys.executable, "nproc": 2,
-              "tumbler": str(shared_data / "tumbler"), "timeout": 300}
+              "dataset": str(made_scenes["pinhole"].path), "images": made_scenes["pinhole"].small, "timeout": 300}
     (tmp_path / "config.json").write_text(json.dumps(config))
     (tmp_path / "home").mkdir()
     env = dict(os.environ, HOME=str(tmp_path / "home"), OMP_NUM_THREADS="1")

@@ -381,6 +381,8 @@ def test_export_eval_and_init_from_a_run(toy, tmp_path, capsys):
         torch.testing.assert_close(trainer.params[key].detach(), start[key].detach(), rtol=0, atol=0)
     assert main(["train", str(toy), "--out", str(tmp_path / "from_glb"), "--iterations", "10", "--quiet",
                  "--init", str(out / "point_cloud.glb")]) == 0
+    from_glb = json.loads((tmp_path / "from_glb" / "train.json").read_text())
+    assert from_glb["initial_gaussians"] == read_splats(out / "point_cloud.glb").n == ply_metrics["n_gaussians"]
     _one_line_error(capsys, ["train", str(toy), "--out", str(tmp_path / "x"), "--init", str(tmp_path / "none.spz")],
                     "none.spz", "not found")
     _one_line_error(capsys, ["train", str(toy), "--out", str(tmp_path / "x"), "--export", "spz,obj"], "'obj'")

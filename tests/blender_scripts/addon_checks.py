@@ -9,8 +9,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import (addon, blocked_attempts, bpy, cancel_and_wait, check, config, delete_selected_points, finish,  # noqa: E402
-                     forbidden_modules, install, process_gone, run_until_idle)
+from harness import (addon, blocked_attempts, bpy, cancel_and_wait, check, config, delete_selected_points,  # noqa: E402
+                     drain_until, finish, forbidden_modules, install, process_gone, run_until_idle)
 
 import numpy as np  # noqa: E402
 from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
@@ -80,17 +80,6 @@ def prefs_lines() -> list[str]:
     return log
 
 
-def drain_until(condition, timeout: float = 60.0, what: str = "the condition") -> None:
-    """Drive the follower (as its timer would) until ``condition()``."""
-    training = addon("training")
-    deadline = time.time() + timeout
-    while not condition():
-        if time.time() > deadline:
-            raise TimeoutError(f"timed out waiting for {what}")
-        training.drain_and_apply(bpy.context)
-        time.sleep(0.02)
-
-
 def live_run():
     return addon("training").live_of(state())
 
@@ -120,28 +109,39 @@ def prefs():
 prefs().output_dir = str(TMP / "runs")
 
 
-@check
-def import_tumbler():
-    bpy.ops.promptgs.import_colmap(directory=config["tumbler"], images="images_4")
+SCENE, DISTORTED = config["scene"], config["distorted"]  # made by tests/scenes.py
+
+
+def points_of(facts: dict):
+    return bpy.data.objects[f"PromptGS Sparse Points {facts['name']}"]
+
+
+def root_of(facts: dict):
+    return bpy.data.objects[f"PromptGS Root {facts['name']}"]
+
+
+def import_scene(facts: dict):
+    bpy.ops.promptgs.import_colmap(directory=facts["path"], images=facts["small"])
     root = scene().promptgs.root
+    assert root == root_of(facts)
     cams = [o for o in root.children if o.type == "CAMERA"]
-    points = bpy.data.objects["PromptGS Sparse Points tumbler"]
-    assert len(cams) == 77, len(cams)
-    assert len(points.data.vertices) == 9262 and points.type == "MESH"  # editable: a mesh on every line
+    points = points_of(facts)
+    assert len(cams) == facts["n_images"], len(cams)
+    assert len(points.data.vertices) == facts["n_points"] and points.type == "MESH"  # editable: a mesh on every line
     assert {"color", "error"} <= set(points.data.attributes.keys())
     assert scene().promptgs.distortion == ""
     return {"cameras": len(cams)}
 
 
-@check
-def projection_matches_colmap():
-    root = scene().promptgs.root
+def projection_matches_colmap(facts: dict):
+    root = root_of(facts)
     errors = []
-    for item in config["projections"]:
+    for item in facts["projections"]:
         cam = bpy.data.objects[item["image"]]
+        assert cam.parent == root
         bpy.ops.promptgs.use_camera(name=cam.name)
         width, height = scene().render.resolution_x, scene().render.resolution_y
-        assert (width, height) == (cam.data["promptgs_width"], cam.data["promptgs_height"])
+        assert (width, height) == (cam.data["promptgs_width"], cam.data["promptgs_height"]) == tuple(facts["size"])
         ndc = world_to_camera_view(scene(), cam, root.matrix_world @ Vector(item["point"]))
         uv = np.array([ndc.x * width, (1.0 - ndc.y) * height])
         errors.append(float(np.abs(uv - np.array(item["uv"])).max()))
@@ -149,20 +149,42 @@ def projection_matches_colmap():
     return {"max_error_px": max(errors), "n": len(errors)}
 
 
-@check
-def root_puts_capture_upright():
-    root = scene().promptgs.root
+def root_puts_capture_upright(facts: dict):
     ups = []
-    for cam in [o for o in root.children if o.type == "CAMERA"]:
+    for cam in [o for o in root_of(facts).children if o.type == "CAMERA"]:
         ups.append(tuple(cam.matrix_world.to_3x3() @ Vector((0, 1, 0))))  # Blender camera up
     mean_up = np.mean(ups, axis=0)
     assert mean_up[2] > 0.5, mean_up
     return {"mean_camera_up": mean_up.tolist()}
 
 
+def import_distorted_reports_distortion(facts: dict):
+    before = set(bpy.data.objects.keys())
+    bpy.ops.promptgs.import_colmap(directory=facts["path"], backgrounds=True)
+    note = scene().promptgs.distortion
+    cam = bpy.data.objects[facts["background"]]
+    assert cam.data.show_background_images and cam.data.background_images[0].image.name == facts["background"]
+    assert (cam.data["promptgs_width"], cam.data["promptgs_height"]) == tuple(facts["size"])
+    for word in facts["distortion_words"]:
+        assert word in note, (word, note)
+    new = set(bpy.data.objects.keys()) - before
+    assert len([n for n in new if bpy.data.objects[n].type == "CAMERA"]) == facts["n_images"]
+    return {"note": note}
+
+
+def back_to_the_scene() -> None:
+    """The made pinhole scene's import is the one the later checks work on."""
+    scene().promptgs.root = root_of(SCENE)
+    scene().promptgs.images = SCENE["small"]
+
+
+check(import_scene, SCENE)
+check(projection_matches_colmap, SCENE)
+check(root_puts_capture_upright, SCENE)
+
+
 @check
 def non_square_pixels_project_exactly():
-    tumbler_root = scene().promptgs.root
     bpy.ops.promptgs.import_colmap(directory=config["pinhole"], up="+Z")
     root = scene().promptgs.root
     errors = []
@@ -174,27 +196,13 @@ def non_square_pixels_project_exactly():
         uv = np.array([ndc.x * width, (1.0 - ndc.y) * height])
         errors.append(float(np.abs(uv - np.array(item["uv"])).max()))
     aspect = (scene().render.pixel_aspect_x, scene().render.pixel_aspect_y)
-    scene().promptgs.root = tumbler_root
-    scene().promptgs.images = "images_4"
+    back_to_the_scene()
     assert max(errors) < 0.5, max(errors)
     return {"max_error_px": max(errors), "last_pixel_aspect": aspect}
 
 
-@check
-def import_fern_reports_distortion():
-    before = set(bpy.data.objects.keys())
-    bpy.ops.promptgs.import_colmap(directory=config["fern"], backgrounds=True)
-    note = scene().promptgs.distortion
-    cam = bpy.data.objects["image003.png"]
-    assert cam.data.show_background_images and cam.data.background_images[0].image.name == "image003.png"
-    assert (cam.data["promptgs_width"], cam.data["promptgs_height"]) == (504, 378)
-    assert "SIMPLE_RADIAL" in note and "k=0.01975" in note, note
-    new = set(bpy.data.objects.keys()) - before
-    assert len([n for n in new if bpy.data.objects[n].type == "CAMERA"]) == 20
-    # back to tumbler for the rest
-    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
-    scene().promptgs.images = "images_4"
-    return {"note": note}
+check(import_distorted_reports_distortion, DISTORTED)
+back_to_the_scene()
 
 
 def pytest_approx(values, tol=1e-6):
@@ -248,7 +256,7 @@ def prompt_cube_box_in_job_file():
     assert box["size"] == pytest_approx([0.2, 0.3, 0.4])  # 2 × display size 0.5 × scale
     for key in ("dataset", "out", "images", "iterations", "strategy", "backend", "snapshot_every", "seed"):
         assert key in job, key
-    assert job["images"] == "images_4" and Path(job["dataset"]).name == "tumbler"
+    assert job["images"] == SCENE["small"] and Path(job["dataset"]).resolve() == Path(SCENE["path"]).resolve()
     assert not {"budget", "auto_prompts", "propose_prompts", "compact", "nproc"} & set(job)  # off / one process
     scene().promptgs.compact, scene().promptgs.nproc, scene().promptgs.propose_prompts = True, 2, True
     job_with = addon("training").build_job(bpy.context, TMP / "job_check")
@@ -272,7 +280,7 @@ def prompt_cube_box_in_job_file():
 
 @check
 def prompt_around_selected_points():
-    points = bpy.data.objects["PromptGS Sparse Points tumbler"]
+    points = points_of(SCENE)
     mesh = points.data
     n = len(mesh.vertices)
     co = np.empty(n * 3, np.float32)
@@ -415,7 +423,7 @@ def wrong_trainer_path_is_a_clear_error():
 @check
 def dataset_without_images_is_a_clear_error():
     bare = TMP / "no_images"
-    shutil.copytree(Path(config["tumbler"]) / "sparse", bare / "sparse")
+    shutil.copytree(Path(SCENE["path"]) / "sparse", bare / "sparse")
     bpy.ops.promptgs.import_colmap(directory=str(bare))
     fake_trainer("ok")
     try:
@@ -425,7 +433,7 @@ def dataset_without_images_is_a_clear_error():
         pass
     message = scene().promptgs.start_error
     assert "no such image folder" in message and "no_images" in message, message
-    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
+    back_to_the_scene()
     return {"message": message}
 
 
@@ -453,7 +461,8 @@ def dataset_generation_runs_in_background():
 def reconstruct_from_photos_imports_the_result():
     """sfm runs in the background, its stage line shows, and its dataset is imported."""
     fake_trainer("stepwise")  # the fake holds at its mapping stage until sfm_go exists
-    photos = Path(config["tumbler"]) / "images"
+    photos = Path(SCENE["path"]) / "images"
+    n = SCENE["n_images"]
     bpy.ops.promptgs.reconstruct(directory=str(photos))
     assert jobs().sfm_status == "RUNNING", (jobs().sfm_status, jobs().sfm_message)
     go = Path(jobs().sfm_out).parent / "sfm_go"
@@ -467,23 +476,22 @@ def reconstruct_from_photos_imports_the_result():
         time.sleep(0.01)
     assert jobs().sfm_status == "DONE", (jobs().sfm_status, jobs().sfm_message)
     assert any(line.startswith(("features", "matching", "mapping")) for line in lines), lines
-    assert "76 of 77 images registered" in jobs().sfm_message, jobs().sfm_message
+    assert f"{n - 1} of {n} images registered" in jobs().sfm_message, jobs().sfm_message
     root = scene().promptgs.root
     assert Path(root["promptgs_dataset"]) == Path(jobs().sfm_out).resolve()
-    assert len([o for o in root.children if o.type == "CAMERA"]) == 77
-    # back to the tumbler import for the rest
-    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
-    scene().promptgs.images = "images_4"
+    assert len([o for o in root.children if o.type == "CAMERA"]) == n
+    back_to_the_scene()
     return {"message": jobs().sfm_message, "stage_lines": sorted(set(lines))[:6]}
 
 
 @check
 def reconstruct_errors_and_cancel():
     fake_trainer("crash")
-    photos = Path(config["tumbler"]) / "images"
+    photos = Path(SCENE["path"]) / "images"
     bpy.ops.promptgs.reconstruct(directory=str(photos))
     run_until_idle(60)
-    assert jobs().sfm_status == "ERROR" and "only 6 of 77 images registered" in jobs().sfm_message, jobs().sfm_message
+    only = f"only 6 of {SCENE['n_images']} images registered"
+    assert jobs().sfm_status == "ERROR" and only in jobs().sfm_message, jobs().sfm_message
     fake_trainer("slow")
     bpy.ops.promptgs.reconstruct(directory=str(photos))
     out = Path(jobs().sfm_out)
@@ -571,6 +579,7 @@ def blender_import_agrees_with_ours():
     if not addon("display").native_splats_supported():
         return {"native": False}
     display, results = addon("display"), addon("results")
+    run = next(r for r in reversed(scene().promptgs.runs) if r.last_snapshot)  # shown again at the end
     rng = np.random.default_rng(4)
     n = 400
     table = rng.normal(size=(n, len(INRIA_NAMES))).astype("<f4")
@@ -604,6 +613,8 @@ def blender_import_agrees_with_ours():
                                    rtol=1e-5, atol=2e-6, err_msg=f"snapshot {name}")
     assert ours.data.type == "GAUSSIAN_SPLAT" and "radiance:sh_0" not in ours.data.attributes
     bpy.data.objects.remove(theirs)
+    bpy.ops.promptgs.show_run(name=run.name)  # the later checks work on the run's objects, as on the other lines
+    assert results.LOSS_FIELD in bpy.data.objects
     return {"native": True, "compared": compared, "snapshot_compared": int(inside.sum())}
 
 
@@ -1276,7 +1287,7 @@ def buttons_grey_out_when_they_cannot_run():
 @check
 def a_picked_photo_means_its_folder():
     reconstruct = addon("reconstruct")
-    photos = Path(config["tumbler"]) / "images"
+    photos = Path(SCENE["path"]) / "images"
     photo = sorted(photos.iterdir())[0]
     video = TMP / "clip.MP4"
     video.write_bytes(b"\0" * 16)
@@ -1470,13 +1481,22 @@ def proposed_cubes_draw_orange_pixels():
     return {"drawn": True, "orange_pixels": n_orange, "renderer": gpu.platform.renderer_get()}
 
 
+# The real scenes beside the repository, when present: their imports too.
+for real in config["real"]:
+    if real["kind"] == "scene":
+        for fn in (import_scene, projection_matches_colmap, root_puts_capture_upright):
+            check(fn, real, name=f"{fn.__name__}@{real['name']}")
+    else:
+        check(import_distorted_reports_distortion, real, name=f"import_distorted_reports_distortion@{real['name']}")
+
+
 @check
 def loading_a_file_detaches_the_run():
     """Opening another file while a run trains lets it go on, detached (every file's
     panel lists it); opening the file whose scene records it attaches it again, with
     the progress it made meanwhile."""
     training = addon("training")
-    scene().promptgs.root = bpy.data.objects["PromptGS Root tumbler"]
+    scene().promptgs.root = root_of(SCENE)
     fake_trainer("slow")
     bpy.ops.promptgs.train()
     name, folder = state().name, state().folder

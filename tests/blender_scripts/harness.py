@@ -39,16 +39,18 @@ def save():
         json.dump(results, handle, indent=1)
 
 
-def check(fn):
-    """Run a check now; record ok / the error; details a check returns are kept."""
+def check(fn, *args, name: str = ""):
+    """Run a check now (``fn(*args)``, recorded as ``name`` or the function's name); record
+    ok / the error; details a check returns are kept. Used as a decorator without args."""
+    name = name or fn.__name__
     start = time.time()
     try:
-        info = fn() or {}
-        results[fn.__name__] = {"ok": True, **info}
+        info = fn(*args) or {}
+        results[name] = {"ok": True, **info}
     except Exception as exc:  # recorded for the test to show
-        results[fn.__name__] = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
-                                "traceback": traceback.format_exc()[-3000:]}
-    results[fn.__name__]["seconds"] = round(time.time() - start, 2)
+        results[name] = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
+                         "traceback": traceback.format_exc()[-3000:]}
+    results[name]["seconds"] = round(time.time() - start, 2)
     save()
     return fn
 
@@ -81,6 +83,20 @@ def run_until_idle(timeout: float = 300.0, on_events=None) -> None:
             return
         time.sleep(0.05)
     raise TimeoutError("the trainer run did not finish in time")
+
+
+def drain_until(condition, timeout: float = 60.0, what: str = "the condition") -> None:
+    """Drive the follower (as its timer would) until ``condition()``; a timeout names
+    ``what`` and the shown run's state."""
+    training = addon("training")
+    deadline = time.time() + timeout
+    while not condition():
+        if time.time() > deadline:
+            record = training.shown_record(bpy.context.scene)
+            shown = f" ({record.status}: {record.message})" if record is not None else ""
+            raise TimeoutError(f"timed out waiting for {what}{shown}")
+        training.drain_and_apply(bpy.context)
+        time.sleep(0.02)
 
 
 def process_tree(pid: int) -> list[int]:

@@ -19,7 +19,7 @@ def training_started():
     install()
     preferences = bpy.context.preferences.addons["bl_ext.user_default.promptgs"].preferences
     preferences.python, preferences.output_dir = config["python"], str(TMP / "runs")
-    bpy.ops.promptgs.import_colmap(directory=config["tumbler"], images="images_4")
+    bpy.ops.promptgs.import_colmap(directory=config["dataset"], images=config["images"])
     settings = bpy.context.scene.promptgs
     settings.preset, settings.iterations, settings.snapshot_every = "CUSTOM", 100000, 50
     settings.strategy, settings.backend, settings.nproc = "3dgs", "cpu", config["nproc"]

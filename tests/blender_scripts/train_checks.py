@@ -1,8 +1,11 @@
 """The installed extension driving the real trainer (see test_blender_train.py).
 
-Imports tumbler, adds a prompt, runs a short CPU training through ``python -m
-promptgs_engine train`` (a separate process: this one blocks torch imports), renders
-the scene with Workbench while training goes on, then cancels a second run mid-way.
+Imports a pinhole scene (tests/scenes.py's, or tumbler), adds a prompt around its
+object, runs a short CPU training through ``python -m promptgs_engine train`` (a separate
+process: this one blocks torch imports), renders the scene with Workbench while training
+goes on, previews it, exports its Gaussians (and trains again from them after deleting
+those in the prompt box), cancels a run mid-way, resumes a reopened one and cancels a
+two-process one.
 """
 
 import json
@@ -13,8 +16,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
-from harness import (addon, bpy, cancel_and_wait, check, config, delete_selected_points, finish,  # noqa: E402
-                     forbidden_modules, install, process_tree, run_until_idle)
+from harness import (addon, bpy, cancel_and_wait, check, config, delete_selected_points, drain_until,  # noqa: E402
+                     finish, forbidden_modules, install, process_tree, run_until_idle)
 
 import bmesh  # noqa: E402
 import numpy as np  # noqa: E402
@@ -74,7 +77,7 @@ def setup():
     bpy.ops.promptgs.test_trainer()  # in the background: the follower brings its answer
     run_until_idle(120)
     probe = prefs().probe_result
-    bpy.ops.promptgs.import_colmap(directory=config["tumbler"], images="images_4")
+    bpy.ops.promptgs.import_colmap(directory=config["dataset"], images=config["images"])
     settings = scene().promptgs
     root = settings.root
     select_object_points(config["render_camera"], config["prompt_rect"])
@@ -180,6 +183,7 @@ def preview_dataset_camera():
     sc = scene()
     addon("importer").use_camera(sc, bpy.data.objects[config["render_camera"]])
     sc.render.resolution_percentage = 25  # the run trained on images_4, a quarter of the model's size
+    assert config["images"] == "images_4"
     info = preview_now()
     preview = addon("preview")
     image = bpy.data.images["PromptGS Preview"]
@@ -205,7 +209,7 @@ def preview_user_camera():
     data.shift_x, data.shift_y = 0.05, -0.03
     cam = bpy.data.objects.new("Placed Camera", data)
     sc.collection.objects.link(cam)
-    # a step back from a dataset camera and a turn, so the view differs but sees the cup
+    # a step back from a dataset camera and a turn, so the view differs but sees the object
     back = reference.matrix_world.to_3x3() @ Vector((0.0, 0.0, 1.0))
     cam.matrix_world = reference.matrix_world.copy()
     cam.location = reference.matrix_world.translation + 0.6 * back
@@ -240,7 +244,7 @@ def cycles_render_of_native_splats():
     """5.3+: Cycles renders the finished run's splats (Blender's own) from a dataset camera,
     at the run's image size, Standard view transform, for the PSNR comparison of the test."""
     if not addon("display").native_splats_supported():
-        return {"native": False}
+        return {"native": False, "blender": list(bpy.app.version)}
     sc = scene()
     sc.promptgs.display_style = "AUTO"  # Blender's own splats (setup chose spheres for Workbench)
     assert bpy.data.objects["PromptGS Gaussians"].data.type == "GAUSSIAN_SPLAT"
@@ -262,7 +266,7 @@ def cycles_render_of_native_splats():
     bpy.ops.render.render(write_still=True)
     for o in shown:
         o.hide_render = False
-    return {"native": True, "image": sc.render.filepath, "seconds": round(time.time() - start, 1),
+    return {"native": True, "blender": list(bpy.app.version), "image": sc.render.filepath, "seconds": round(time.time() - start, 1),
             "size": [sc.render.resolution_x // 4, sc.render.resolution_y // 4]}
 
 
@@ -271,7 +275,7 @@ def export_for_eval():
     """The finished run's Gaussians exported as they are, and with the splats inside the
     prompt box deleted, each into a copy of the run folder (for ``promptgs eval``)."""
     obj = bpy.data.objects["PromptGS Gaussians"]
-    run = Path(state().out_dir)
+    run = Path(state().folder)
     display = addon("display")
     out = {}
     for name in ("unchanged", "cropped"):
@@ -290,9 +294,39 @@ def export_for_eval():
         assert bpy.ops.promptgs.export_gaussians(filepath=str(path), start_from=name == "cropped") == {"FINISHED"}
         out[name] = str(copy)
     out["n_left"] = display.point_count(obj)
-    assert scene().promptgs.init_ply == str(TMP / "run_cropped" / "point_cloud.ply")
-    scene().promptgs.init_ply = ""  # the trainer here may not know `init` yet
+    assert scene().promptgs.init_ply == str(TMP / "run_cropped" / "point_cloud.ply")  # Train From It
     return out
+
+
+@check
+def train_from_the_cleaned_export():
+    """The next run starts from what *Export Gaussians* wrote with Train From It (the
+    Gaussians left after deleting those in the prompt box): the job file and the run's
+    cfg.json name the file, the run starts from exactly its Gaussians (train.json, and the
+    first snapshot, taken before the first refinement), and it finishes."""
+    settings = scene().promptgs
+    path = TMP / "run_cropped" / "point_cloud.ply"
+    assert settings.init_ply == str(path), settings.init_ply
+    exported = len(addon("plyio").read_vertices(path))
+    settings.iterations, settings.snapshot_every = config["iterations"], 5  # refinement starts at step 10
+    try:
+        bpy.ops.promptgs.train()
+        run_until_idle(config["timeout"])
+    finally:
+        settings.init_ply, settings.snapshot_every = "", config["snapshot_every"]
+    st = state()
+    assert st.status == "DONE", (st.status, st.message, st.error_lines)
+    folder = Path(st.folder)
+    assert json.loads(Path(st.job_path).read_text())["init"] == str(path)
+    assert json.loads((folder / "cfg.json").read_text())["init"] == str(path)
+    started = json.loads((folder / "train.json").read_text())["initial_gaussians"]
+    first = min((folder / "snapshots").glob("step_*.npz"))
+    with np.load(first) as npz:
+        in_first = len(npz["means"])
+    assert started == exported == in_first and first.name == "step_000005.npz", (started, exported, in_first, first.name)
+    assert Path(st.result_ply).is_file() and st.step == st.iterations, (st.result_ply, st.step, st.iterations)
+    return {"out": str(folder), "init": str(path), "exported": exported, "initial_gaussians": started,
+            "first_snapshot": first.name, "n_final": st.n_gaussians, "psnr": st.psnr}
 
 
 @check
@@ -321,16 +355,6 @@ def cancel_real_trainer():
     np.testing.assert_allclose(addon("display").get_attribute(obj, "position"), means, atol=1e-6)
     return {"message": st.message, "returncode": run.process.returncode, "snapshot_step": st.snapshot_step,
             "last_output": st.last_output}
-
-
-def drain_until(condition, timeout: float, what: str) -> None:
-    training = addon("training")
-    deadline = time.time() + timeout
-    while not condition():
-        if time.time() > deadline:
-            raise TimeoutError(f"timed out waiting for {what} ({state().status}: {state().message})")
-        training.drain_and_apply(bpy.context)
-        time.sleep(0.05)
 
 
 @check
