@@ -55,7 +55,7 @@ def test_training_on_the_sfm_model_matches_the_given_model(tumbler_sfm, tmp_path
     the given model's (measured on the global mapper's 75 photos, seeds 0-4: +0.95, +0.95,
     −0.23, +0.25, −0.10 dB, docs/sfm.md; a short training's spread is large both ways)."""
     from promptgs_engine.config import TrainConfig
-    from promptgs_engine.train import run_training
+    from promptgs_engine.run import run_training
 
     out, summary = tumbler_sfm
     names = set(camera_centres(out / "sparse" / "0"))
