@@ -330,6 +330,33 @@ Tensor ssim_bwd(Tensor grad, Tensor partials, Tensor img, Tensor ref, Tensor win
     return grad_img;
 }
 
+std::vector<Tensor> photometric_fwd(Tensor img, Tensor ref, Tensor window) {
+    const promptgs::SsimShape s = ssim_shape(img, ref, window);
+    auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+    Tensor l1 = torch::empty({s.batch, s.height, s.width}, f32);
+    Tensor dssim = torch::empty({s.batch, s.height, s.width}, f32);
+    Tensor partials = torch::empty({3, s.batch, s.height, s.width, s.channels}, f32);
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::photometric_forward(s, img.data_ptr<float>(), ref.data_ptr<float>(), window.data_ptr<float>(),
+                                      l1.data_ptr<float>(), dssim.data_ptr<float>(), partials.data_ptr<float>());
+    }
+    return {l1, dssim, partials};
+}
+
+Tensor photometric_bwd(double ssim_grad, double l1_grad, Tensor partials, Tensor img, Tensor ref, Tensor window) {
+    const promptgs::SsimShape s = ssim_shape(img, ref, window);
+    check(partials, "partials", torch::kFloat32, {3, s.batch, s.height, s.width, s.channels});
+    Tensor grad_img = torch::empty_like(img);
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::photometric_backward(s, static_cast<float>(ssim_grad), static_cast<float>(l1_grad),
+                                       partials.data_ptr<float>(), img.data_ptr<float>(), ref.data_ptr<float>(),
+                                       window.data_ptr<float>(), grad_img.data_ptr<float>());
+    }
+    return grad_img;
+}
+
 int num_threads() { return omp_get_max_threads(); }
 
 std::map<std::string, double> stage_times(bool reset, bool cpu) {
@@ -371,6 +398,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           "padding): (img, ref, window, need_grad) -> [ssim BxHxWxC, partials for ssim_backward or empty].");
     m.def("ssim_backward", &ssim_bwd,
           "dL/dimg from (dL/dssim, partials, img, ref, window) of ssim_forward.");
+    m.def("photometric_forward", &photometric_fwd,
+          "The 3DGS loss's per-pixel maps of img against ref ([B,H,W,C] float32): (img, ref, window) -> "
+          "[channel mean of |img - ref| BxHxW, channel mean of 1 - SSIM BxHxW, partials for photometric_backward].");
+    m.def("photometric_backward", &photometric_bwd,
+          "dL/dimg from (dL/dSSIM at every element, the factor of sgn(img - ref), partials, img, ref, window): the "
+          "SSIM part as ssim_backward gives it for that constant gradient, plus the L1 part.");
     m.def("num_threads", &num_threads, "OpenMP threads the rasterizer uses.");
     m.def("simd_variant", [] { return std::string(promptgs::kernels().name); },
           "Instruction set of the kernels picked for this CPU (avx512, avx2, sse2 or native; PROMPTGS_SIMD caps it).");
