@@ -143,3 +143,16 @@ def test_reference_edges_are_kept_per_view_and_per_crop_window():
         kept = torch.stack([cache.of(v) for v in crops])
         assert torch.equal(edge_losses_to(render, kept), edge_losses(render, torch.stack([v.gt for v in crops])))
     assert len(cache) == 2
+
+
+def test_loss_and_mse_reads_the_image_s_mse_without_touching_it():
+    """The step's MSE is the plain expression's to the bit, and neither image changes."""
+    g = torch.Generator().manual_seed(2)
+    img = torch.rand(1, 9, 13, 3, generator=g).requires_grad_(True)
+    ref = torch.rand(1, 9, 13, 3, generator=g)
+    before = img.detach().clone(), ref.clone()
+    loss = (img * 2.0).sum()
+    loss_value, mse_value = metrics.loss_and_mse(loss, img, ref)
+    assert mse_value == float(((img.detach() - ref) ** 2).mean())
+    assert loss_value == float(loss.detach())
+    assert torch.equal(img.detach(), before[0]) and torch.equal(ref, before[1])
