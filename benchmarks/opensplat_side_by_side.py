@@ -127,6 +127,12 @@ def cpu_model() -> dict:
     return {"model": fields.get("model name", "?"), "avx2": "avx2" in flags, "avx512f": "avx512f" in flags}
 
 
+def cpu_line(cpu: dict) -> str:
+    """The CPU model and its widest vector extension, e.g. "AMD EPYC (AVX-512)"."""
+    widest = "AVX-512" if cpu.get("avx512f") else "AVX2" if cpu.get("avx2") else "no AVX2"
+    return f"{cpu.get('model', '?')} ({widest})"
+
+
 def our_commit() -> str:
     """``git describe --always --dirty`` of this checkout, or "unknown"."""
     run = subprocess.run(["git", "-C", str(REPO), "describe", "--always", "--dirty", "--abbrev=10"],
@@ -195,7 +201,7 @@ def plot(results: dict, path: Path) -> None:
     ax.set_title(f"Tumbler, {results['n_gaussians']:,} SfM Gaussians, no densification, {m['threads']} threads each;\n"
                  f"{results['runs']} alternated runs of {results['steps']} steps, load {m['load_average_start']:.1f}-"
                  f"{m['load_average_end']:.1f}; OpenSplat {results['opensplat_version']}, PromptGS "
-                 f"{results['promptgs_commit']} ({results['promptgs_kernels']} kernels);\n{m['cpu'].get('model', '?')}",
+                 f"{results['promptgs_commit']} ({results['promptgs_kernels']} kernels);\n{cpu_line(m['cpu'])}",
                  fontsize=8)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -237,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
                      "promptgs_commit": our_commit(), "promptgs_simd_cap": os.environ.get("PROMPTGS_SIMD"),
                      "promptgs_kernels": None, "opensplat_commands": {}, "sizes": {}}
     print(f"OpenSplat {results['opensplat_version']}, PromptGS {results['promptgs_commit']}, "
-          f"{machine['cpu'].get('model', '?')}, PROMPTGS_SIMD={results['promptgs_simd_cap']}", flush=True)
+          f"{cpu_line(machine['cpu'])}, PROMPTGS_SIMD={results['promptgs_simd_cap']}", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         for images in args.sizes.split(","):
             ours_cmd = [sys.executable, str(Path(__file__).resolve()), "--ours-worker", str(args.dataset), images,
