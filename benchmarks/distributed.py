@@ -237,7 +237,7 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--resolution-scale", type=float, default=1.0, help="train and evaluate at this fraction of the image size")
-    parser.add_argument("--out", type=Path, default=Path("docs/results/distributed"))
+    parser.add_argument("--out", type=Path, default=Path("out/distributed"))
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--threads", type=int, default=1, help=argparse.SUPPRESS)
     parser.add_argument("--result", help=argparse.SUPPRESS)

@@ -11,7 +11,7 @@ Adam on every parameter. ``forward`` is a render without gradients; ``backward``
 and as the process's CPU time (all threads): on a machine busy with other jobs the second
 still measures the work.
 
-    python benchmarks/scaling.py --out docs/results/scaling
+    python benchmarks/scaling.py --out out/scaling
 
 Writes ``scaling.json`` and ``scaling.png`` into ``--out``.
 """

@@ -6,7 +6,7 @@ alternately, ``--repeats`` times each, and medians are reported. Each run's came
 also compared with the given model (Umeyama similarity on the camera centres, errors as
 fractions of the scene's extent, ``promptgs_engine.sfm.compare``).
 
-    python benchmarks/sfm_tumbler.py --scene ../shared/data/tumbler --out docs/results/sfm --repeats 3
+    python benchmarks/sfm_tumbler.py --scene ../shared/data/tumbler --out out/sfm --repeats 3
 
 Writes ``sfm_tumbler.json`` and ``sfm_tumbler.png`` (per-stage seconds, median run) into --out.
 """
@@ -53,7 +53,7 @@ def run_once(images: Path, out: Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data" / "tumbler")
-    ap.add_argument("--out", type=Path, default=Path("docs/results/sfm"))
+    ap.add_argument("--out", type=Path, default=Path("out/sfm"))
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
     args = ap.parse_args()

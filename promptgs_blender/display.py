@@ -3,16 +3,26 @@
 From Blender 5.1 on (``PointCloud.resize``) the points are a point-cloud object; on 4.2 to
 5.0, whose point clouds cannot be resized from Python, a points-only mesh. Either keeps
 the data (``foreach_set`` of numpy arrays, no per-point Python) and can change its point
-count from one snapshot to the next while the object stays the same. The "PromptGS
-Points" node group draws the points either as point-cloud points
-(cheap: a million in well under a second) or as small ico-spheres (about 12 s per million
-to evaluate, so only for small sets). Colour: the ``display_color`` attribute (the chosen
-attribute through a colour map, or the RGB colour) read by the "PromptGS Display"
-material in Material Preview and Rendered shading; for Workbench, which ignores
-attributes, spheres also get one of 16 colour-map materials per palette from
-``display_bin``. Points
-whose colour-map value ``display_value`` (0..1) is below the modifier's "Min Value" are
-not drawn (the loss field shows its high-loss voxels only).
+count from one snapshot to the next while the object stays the same. From 5.3 on a point
+cloud can be Blender's own Gaussian splats (``type`` ``'GAUSSIAN_SPLAT'``), drawn and
+rendered by Blender itself: :func:`set_native` turns the modifier off for them.
+
+The "PromptGS Points" node group draws the points as point-cloud points (cheap: a
+million in well under a second), as small ico-spheres (realized: about 12 s per million
+to evaluate, so only for small sets) or as splats: one instance of a smooth
+icosahedron per Gaussian, moved, turned by its ``rotation`` and stretched by
+``SPLAT_SIGMAS`` times its ``scale``, never realized (instancing a million takes a
+fraction of a second; the viewport draws the instances on the GPU). The "PromptGS Splat"
+material makes each one an emitter of its ``display_color`` whose alpha (the Gaussian's
+opacity) falls off as a Gaussian from the centre of its outline (from the angle between
+the surface normal and the view ray: exact for a sphere, close for an ellipsoid), mixed
+with a transparent shader: front faces only, stochastically blended by Cycles and by
+EEVEE's dithered mode, so no sorting is needed. Colour: the ``display_color`` attribute
+(the chosen attribute through a colour map, or the RGB colour) read by the materials in
+Material Preview and Rendered shading; for Workbench, which ignores attributes, spheres
+also get one of 16 colour-map materials per palette from ``display_bin``. Points whose
+colour-map value ``display_value`` (0..1) is below the modifier's "Min Value" are not
+drawn (the loss field shows its high-loss voxels only).
 """
 
 from __future__ import annotations
@@ -22,9 +32,12 @@ import numpy as np
 
 N_BINS = 16
 NODE_GROUP = "PromptGS Points"
-NODE_GROUP_VERSION = 3  # bump when the group changes; older groups are rebuilt
+NODE_GROUP_VERSION = 4  # bump when the group changes; older groups are rebuilt
 DISPLAY_MATERIAL = "PromptGS Display"
+SPLAT_MATERIAL = "PromptGS Splat"
+SPLAT_SIGMAS = 3.0  # a splat's mesh reaches this many standard deviations along each axis
 SPHERES_UP_TO = 50_000  # "auto" style: spheres up to this many points, plain points above
+SPLATS_UP_TO = 500_000  # "auto" style, 4.2–5.2: splats up to this many Gaussians (10 M triangles), points above
 # colour ramps (control points, linear RGB): 0 dark blue → green → yellow (Gaussians),
 # 1 dark red → orange → pale yellow (the loss field)
 PALETTES = (
@@ -78,6 +91,54 @@ def display_material() -> bpy.types.Material:
     return mat
 
 
+def splat_material() -> bpy.types.Material:
+    """Emission of the instancer's ``display_color`` with alpha × a Gaussian falloff."""
+    mat = bpy.data.materials.get(SPLAT_MATERIAL)
+    if mat is not None:
+        return mat
+    mat = bpy.data.materials.new(SPLAT_MATERIAL)
+    mat.diffuse_color = (0.6, 0.6, 0.6, 1.0)
+    mat.use_nodes = True
+    if hasattr(mat, "surface_render_method"):
+        mat.surface_render_method = "DITHERED"
+    mat.use_backface_culling = True
+    tree = mat.node_tree
+    nodes, links = tree.nodes, tree.links
+    nodes.clear()
+    attr = nodes.new("ShaderNodeAttribute")
+    attr.attribute_type, attr.attribute_name = "INSTANCER", "display_color"
+    geometry = nodes.new("ShaderNodeNewGeometry")
+    facing = nodes.new("ShaderNodeVectorMath")
+    facing.operation = "DOT_PRODUCT"
+    links.new(geometry.outputs["Normal"], facing.inputs[0])
+    links.new(geometry.outputs["Incoming"], facing.inputs[1])
+
+    def math(operation, a, b):
+        node = nodes.new("ShaderNodeMath")
+        node.operation = operation
+        for index, value in enumerate((a, b)):
+            if isinstance(value, float):
+                node.inputs[index].default_value = value
+            else:
+                links.new(value, node.inputs[index])
+        return node.outputs[0]
+
+    # the ray's distance from the centre, in units of the mesh's reach, is sqrt(1 - (N·I)²)
+    cos2 = math("MULTIPLY", facing.outputs["Value"], facing.outputs["Value"])
+    falloff = math("EXPONENT", math("MULTIPLY", math("SUBTRACT", 1.0, cos2), -0.5 * SPLAT_SIGMAS ** 2), 0.0)
+    alpha = math("MULTIPLY", math("MULTIPLY", falloff, attr.outputs["Alpha"]),
+                 math("SUBTRACT", 1.0, geometry.outputs["Backfacing"]))
+    emit = nodes.new("ShaderNodeEmission")
+    links.new(attr.outputs["Color"], emit.inputs["Color"])
+    mix = nodes.new("ShaderNodeMixShader")
+    links.new(alpha, mix.inputs["Fac"])
+    links.new(nodes.new("ShaderNodeBsdfTransparent").outputs[0], mix.inputs[1])
+    links.new(emit.outputs[0], mix.inputs[2])
+    out = nodes.new("ShaderNodeOutputMaterial")
+    links.new(mix.outputs[0], out.inputs["Surface"])
+    return mat
+
+
 def socket(sockets, name: str):
     """The shown socket called ``name`` among a node's inputs or outputs.
 
@@ -92,10 +153,10 @@ def socket(sockets, name: str):
 
 
 def node_group() -> bpy.types.NodeTree:
-    """The shared geometry-nodes group (inputs: Geometry, Radius, Spheres, Min Value).
+    """The shared geometry-nodes group (inputs: Geometry, Radius, Spheres, Min Value, Splats).
 
     The geometry is a points-only mesh or a point cloud; both end as points of the
-    chosen radius, or as ico-spheres on them.
+    chosen radius, as ico-spheres on them, or (Splats) as instanced ellipsoids.
     """
     group = bpy.data.node_groups.get(NODE_GROUP)
     if group is not None:
@@ -112,6 +173,7 @@ def node_group() -> bpy.types.NodeTree:
     spheres.default_value = True
     cutoff = face.new_socket("Min Value", in_out="INPUT", socket_type="NodeSocketFloat")
     cutoff.default_value, cutoff.min_value, cutoff.max_value = 0.0, 0.0, 1.0
+    face.new_socket("Splats", in_out="INPUT", socket_type="NodeSocketBool").default_value = False
     face.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
     nodes, links = group.nodes, group.links
     g_in, g_out = nodes.new("NodeGroupInput"), nodes.new("NodeGroupOutput")
@@ -156,6 +218,7 @@ def node_group() -> bpy.types.NodeTree:
     points_mat = nodes.new("GeometryNodeSetMaterial")
     socket(points_mat.inputs, "Material").default_value = display_material()
     links.new(points, socket(points_mat.inputs, "Geometry"))
+    splats = _splat_instances(nodes, links, socket(delete.outputs, "Geometry"))
     # spheres: the same, then a colour-map material per display_bin (Workbench)
     spheres_mat = nodes.new("GeometryNodeSetMaterial")
     socket(spheres_mat.inputs, "Material").default_value = display_material()
@@ -179,8 +242,43 @@ def node_group() -> bpy.types.NodeTree:
     links.new(socket(g_in.outputs, "Spheres"), socket(switch.inputs, "Switch"))
     links.new(socket(points_mat.outputs, "Geometry"), socket(switch.inputs, "False"))
     links.new(geometry, socket(switch.inputs, "True"))
-    links.new(switch.outputs[0], socket(g_out.inputs, "Geometry"))
+    splat_switch = nodes.new("GeometryNodeSwitch")
+    splat_switch.input_type = "GEOMETRY"
+    links.new(socket(g_in.outputs, "Splats"), socket(splat_switch.inputs, "Switch"))
+    links.new(switch.outputs[0], socket(splat_switch.inputs, "False"))
+    links.new(splats, socket(splat_switch.inputs, "True"))
+    links.new(splat_switch.outputs[0], socket(g_out.inputs, "Geometry"))
     return group
+
+
+def _splat_instances(nodes, links, geometry):
+    """Instances of a smooth unit icosahedron on the points: turned by ``rotation``,
+    stretched by SPLAT_SIGMAS × ``scale``, with the splat material (not realized)."""
+    ico = nodes.new("GeometryNodeMeshIcoSphere")
+    socket(ico.inputs, "Radius").default_value = 1.0
+    socket(ico.inputs, "Subdivisions").default_value = 1
+    smooth = nodes.new("GeometryNodeSetShadeSmooth")
+    mesh_input = "Mesh" if any(item.name == "Mesh" for item in smooth.inputs) else "Geometry"  # 5.3: "Mesh"
+    links.new(socket(ico.outputs, "Mesh"), socket(smooth.inputs, mesh_input))
+    material = nodes.new("GeometryNodeSetMaterial")
+    socket(material.inputs, "Material").default_value = splat_material()
+    links.new(smooth.outputs[0], socket(material.inputs, "Geometry"))
+    rotation = nodes.new("GeometryNodeInputNamedAttribute")
+    rotation.data_type = "QUATERNION"
+    socket(rotation.inputs, "Name").default_value = "rotation"
+    scale = nodes.new("GeometryNodeInputNamedAttribute")
+    scale.data_type = "FLOAT_VECTOR"
+    socket(scale.inputs, "Name").default_value = "scale"
+    stretch = nodes.new("ShaderNodeVectorMath")
+    stretch.operation = "SCALE"
+    links.new(socket(scale.outputs, "Attribute"), stretch.inputs[0])
+    socket(stretch.inputs, "Scale").default_value = SPLAT_SIGMAS
+    instance = nodes.new("GeometryNodeInstanceOnPoints")
+    links.new(geometry, socket(instance.inputs, "Points"))
+    links.new(socket(material.outputs, "Geometry"), socket(instance.inputs, "Instance"))
+    links.new(socket(rotation.outputs, "Attribute"), socket(instance.inputs, "Rotation"))
+    links.new(socket(stretch.outputs, "Vector"), socket(instance.inputs, "Scale"))
+    return socket(instance.outputs, "Instances")
 
 
 def _socket_id(group: bpy.types.NodeTree, name: str) -> str:
@@ -208,16 +306,19 @@ def set_modifier_input(mod: bpy.types.Modifier, name: str, value) -> None:
 
 
 def use_spheres(style: str, n: int) -> bool:
-    """Whether a display style ('AUTO', 'SPHERES', 'POINTS') draws ``n`` points as spheres."""
-    return style == "SPHERES" or (style == "AUTO" and n <= SPHERES_UP_TO)
+    """Whether a display style ('AUTO', 'SPLATS', 'SPHERES', 'POINTS') draws ``n`` points
+    (not Gaussians: the sparse points, the loss field) as spheres."""
+    return style == "SPHERES" or (style in ("AUTO", "SPLATS") and n <= SPHERES_UP_TO)
 
 
 def set_style(obj: bpy.types.Object, radius: float | None = None, spheres: bool | None = None,
-              min_value: float | None = None) -> None:
+              min_value: float | None = None, splats: bool | None = None) -> None:
     """Set the display modifier's inputs (None: leave as is)."""
     mod = obj.modifiers.get("PromptGS Display")
     if mod is None:
         return
+    if splats is not None:
+        set_modifier_input(mod, "Splats", bool(splats))
     if min_value is not None:
         set_modifier_input(mod, "Min Value", float(min_value))
     if radius is not None:
@@ -233,6 +334,25 @@ POINTS_TYPES = ("MESH", "POINTCLOUD")
 def point_clouds_supported() -> bool:
     """Whether this Blender can size a point cloud from Python (5.1+)."""
     return "resize" in bpy.types.PointCloud.bl_rna.functions
+
+
+def native_splats_supported() -> bool:
+    """Whether this Blender draws and renders Gaussian splats itself (5.3+)."""
+    kind = bpy.types.PointCloud.bl_rna.properties.get("type")
+    return kind is not None and "GAUSSIAN_SPLAT" in kind.enum_items.keys()
+
+
+def set_native(obj: bpy.types.Object, native: bool) -> None:
+    """Let Blender draw a point cloud as its own Gaussian splats (5.3+), the display
+    modifier off; or as plain points through the modifier."""
+    if obj.type == "POINTCLOUD" and native_splats_supported():
+        kind = "GAUSSIAN_SPLAT" if native else "POINTS"
+        if obj.data.type != kind:
+            obj.data.type = kind
+    native = native and obj.type == "POINTCLOUD" and native_splats_supported()
+    mod = obj.modifiers.get("PromptGS Display")
+    if mod is not None and (mod.show_viewport == native or mod.show_render == native):
+        mod.show_viewport = mod.show_render = not native
 
 
 def is_points_object(obj: bpy.types.Object | None) -> bool:
@@ -290,6 +410,8 @@ def _resize(obj: bpy.types.Object, n: int) -> None:
         name = old.name
         cloud = bpy.data.pointclouds.new(name)
         cloud.resize(n)
+        if getattr(old, "type", "POINTS") != "POINTS":
+            cloud.type = old.type
         obj.data = cloud
         if old.users == 0:
             bpy.data.pointclouds.remove(old)
@@ -306,6 +428,22 @@ def _data_updated(obj: bpy.types.Object) -> None:
         obj.data.update()
 
 
+FOREACH = {"FLOAT": ("value", 1), "INT": ("value", 1), "FLOAT_VECTOR": ("vector", 3), "FLOAT4": ("vector", 4),
+           "QUATERNION": ("value", 4), "FLOAT_COLOR": ("color", 4)}  # data type: (foreach key, width)
+
+
+def set_attribute(data, name: str, data_type: str, array: np.ndarray) -> None:
+    """Set (or create) a point attribute of a mesh or point cloud from a numpy array."""
+    attr = data.attributes.get(name)
+    if attr is not None and (attr.data_type != data_type or attr.domain != "POINT"):
+        data.attributes.remove(attr)
+        attr = None
+    if attr is None:
+        attr = data.attributes.new(name, data_type, "POINT")
+    prop, _ = FOREACH[data_type]
+    attr.data.foreach_set(prop, np.ascontiguousarray(array, np.int32 if data_type == "INT" else np.float32).ravel())
+
+
 def set_points(obj: bpy.types.Object, positions: np.ndarray | None, attributes: dict[str, np.ndarray]) -> None:
     """Replace the points (unless ``positions`` is None) and set attributes, in place."""
     if positions is None:
@@ -316,45 +454,46 @@ def set_points(obj: bpy.types.Object, positions: np.ndarray | None, attributes: 
         if point_count(obj) != n:
             _resize(obj, n)
         obj.data.attributes["position"].data.foreach_set("vector", positions.ravel())
-    data = obj.data
     for name, array in attributes.items():
         array = np.asarray(array)
-        data_type, prop, width = _attribute_kind(array, name)
+        data_type, _, width = _attribute_kind(array, name)
         if data_type == "FLOAT_COLOR" and array.ndim == 2 and array.shape[1] == 3:
             array = np.concatenate([array, np.ones((n, 1), array.dtype)], axis=1)
-        attr = data.attributes.get(name)
-        if attr is not None and (attr.data_type != data_type or attr.domain != "POINT"):
-            data.attributes.remove(attr)
-            attr = None
-        if attr is None:
-            attr = data.attributes.new(name, data_type, "POINT")
-        dtype = np.int32 if data_type == "INT" else np.float32
-        attr.data.foreach_set(prop, np.ascontiguousarray(array, dtype).reshape(n * width))
+        set_attribute(obj.data, name, data_type, array.reshape(n * width))
     _data_updated(obj)
 
 
-def get_attribute(obj: bpy.types.Object, name: str) -> np.ndarray:
-    """A point attribute as a numpy array ([N] or [N, width])."""
-    attr = obj.data.attributes[name]
-    n = point_count(obj)
-    width = {"FLOAT": 1, "INT": 1, "FLOAT_VECTOR": 3, "QUATERNION": 4, "FLOAT_COLOR": 4}[attr.data_type]
-    prop = {"FLOAT_VECTOR": "vector", "FLOAT_COLOR": "color"}.get(attr.data_type, "value")
+def get_attribute(obj: bpy.types.Object | bpy.types.ID, name: str) -> np.ndarray:
+    """A point attribute of an object's data (or of a mesh or point cloud) as a numpy
+    array ([N] or [N, width])."""
+    data = obj.data if isinstance(obj, bpy.types.Object) else obj
+    attr = data.attributes[name]
+    n = len(attr.data)
+    prop, width = FOREACH[attr.data_type]
     out = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
     attr.data.foreach_get(prop, out)
     return out if width == 1 else out.reshape(n, width)
 
 
-def color_by(obj: bpy.types.Object, name: str, palette: int = 0) -> None:
-    """Colour the points by one attribute: colour-map bins, or RGB for ``color``."""
+def color_by(obj: bpy.types.Object, name: str, palette: int = 0, sources: dict[str, np.ndarray] | None = None,
+             alpha: np.ndarray | None = None) -> None:
+    """Colour the points by one attribute: colour-map bins, or RGB for ``color``.
+
+    ``sources`` gives values that are not stored under their name (e.g. a Gaussian's
+    opacity, or ``color``: linear RGB to show as it is); ``alpha`` the colour's alpha
+    (the splats' opacity; 1 when None).
+    """
+    sources = sources or {}
     attributes = obj.data.attributes
     n = point_count(obj)
     note = ""
     t = np.ones(n)
-    if name == "color" or name not in attributes:
+    known = name in sources or name in attributes
+    if name == "color" or not known:
         bins = np.full(n, -1, np.int32)
         note = "" if name == "color" else f"no '{name}' attribute: RGB colours"
     else:
-        values = get_attribute(obj, name).astype(np.float64)
+        values = np.asarray(sources[name] if name in sources else get_attribute(obj, name), np.float64)
         if values.ndim == 2:
             values = values.mean(axis=1) if name == "scale" else np.linalg.norm(values, axis=1)
         lo, hi = (np.percentile(values, [2, 98]) if n else (0.0, 1.0))
@@ -365,14 +504,19 @@ def color_by(obj: bpy.types.Object, name: str, palette: int = 0) -> None:
         elif n:
             note = f"'{name}': {lo:.3g} … {hi:.3g} (2–98 %)"
     obj["promptgs_color_note"] = note
-    if name == "color" and "color" in attributes:
+    if name == "color" and "color" in sources:
+        rgb = sources["color"]
+    elif name == "color" and "color" in attributes:
         rgb = get_attribute(obj, "color")[:, :3]
-    elif name == "color" or name not in attributes:
+    elif name == "color" or not known:
         rgb = np.full((n, 3), 0.6)
     else:
         rgb = colormap((bins + 0.5) / N_BINS, palette)
         bins = bins + palette * N_BINS
-    set_points(obj, None, {"display_color": rgb, "display_value": np.clip(t, 0.0, 1.0).astype(np.float32),
+    rgba = np.empty((n, 4), np.float32)
+    rgba[:, :3] = rgb
+    rgba[:, 3] = 1.0 if alpha is None else alpha
+    set_points(obj, None, {"display_color": rgba, "display_value": np.clip(t, 0.0, 1.0).astype(np.float32),
                            "display_bin": bins})
     obj["promptgs_color_by"] = name
 

@@ -1,16 +1,22 @@
-"""Operators: import, prompts, train/cancel, load result, trainer check, dataset generation."""
+"""Operators: import, prompts, train / cancel / resume and the runs list, load result, export Gaussians, the
+trainer's check and set-up, dataset generation, reconstruction, previews.
+
+None of them is modal: a job is followed by a timer (training.drain_and_apply), so Esc
+means nothing to it and Blender autosaves while it goes. The exception is
+``promptgs.notify``, which lives for one timer event to put a message in the status bar.
+Each has a ``poll`` where it cannot always run, so its button is greyed out then.
+"""
 
 import time
 from pathlib import Path
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
-from bpy_extras.io_utils import ImportHelper
+from bpy_extras.io_utils import ExportHelper, ImportHelper
 from mathutils import Vector
 
-from . import colmap, display, importer, plyio, prompts, proposals, reconstruct, training
+from . import colmap, display, importer, plyio, preview, prompts, proposals, reconstruct, results, training
 from .props import prefs
-from .trainer import find_python, probe
 
 
 class PROMPTGS_OT_import_colmap(bpy.types.Operator):
@@ -35,7 +41,6 @@ class PROMPTGS_OT_import_colmap(bpy.types.Operator):
         try:
             root, warnings = importer.import_colmap(context, self.directory, self.images, self.backgrounds, self.up)
         except (colmap.ColmapError, OSError) as exc:
-            context.window_manager.promptgs_run.message = str(exc)
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         for warning in warnings:
@@ -54,6 +59,10 @@ class PROMPTGS_OT_use_camera(bpy.types.Operator):
 
     name: StringProperty()
 
+    @classmethod
+    def poll(cls, context):
+        return any(obj.type == "CAMERA" for obj in context.scene.objects)
+
     def execute(self, context):
         obj = bpy.data.objects.get(self.name) or context.active_object
         if obj is None or obj.type != "CAMERA":
@@ -69,6 +78,10 @@ class PROMPTGS_OT_add_prompt(bpy.types.Operator):
     bl_idname = "promptgs.add_prompt"
     bl_label = "Add Prompt"
     bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.mode in ("OBJECT", "EDIT_MESH")
 
     def execute(self, context):
         bounds = prompts.selected_points_bounds(context)
@@ -129,7 +142,7 @@ class PROMPTGS_OT_remove_prompt(bpy.types.Operator):
 
 def _start(operator, context, start, message: str) -> set[str]:
     """Run a ``training.start_*`` function: its problem is reported as an error, else the
-    panel's ``message`` field as information."""
+    job panel's ``message`` field as information."""
     try:
         start(context)
     except training.UserError as exc:
@@ -145,6 +158,10 @@ class PROMPTGS_OT_propose(bpy.types.Operator):
     bl_idname = "promptgs.propose"
     bl_label = "Propose Prompts"
 
+    @classmethod
+    def poll(cls, context):
+        return proposals.current_job() is None and _has_chosen_run(context)
+
     def execute(self, context):
         return _start(self, context, training.start_propose, "propose_message")
 
@@ -157,6 +174,10 @@ class PROMPTGS_OT_accept_proposal(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     name: StringProperty()
+
+    @classmethod
+    def poll(cls, context):
+        return bool(proposals.proposed_objects(context.scene))
 
     def execute(self, context):
         cubes = [bpy.data.objects.get(self.name)] if self.name else proposals.proposed_objects(context.scene)
@@ -172,13 +193,23 @@ class PROMPTGS_OT_accept_proposal(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def _has_chosen_run(context) -> bool:
+    return bool(context.scene.promptgs.preview_run) or training.shown_record(context.scene) is not None
+
+
+def _shown_live(context):
+    return training.live_of(training.shown_record(context.scene))
+
+
 class PROMPTGS_OT_train(bpy.types.Operator):
-    """Train with the prompts in a separate trainer process (Esc cancels)"""
+    """Train with the prompts as a new run of this scene, in a separate trainer process (the shown run's objects are kept, unless Replace Shown Run)"""
 
     bl_idname = "promptgs.train"
     bl_label = "Train Focused"
 
-    _timer = None
+    @classmethod
+    def poll(cls, context):
+        return training.has_dataset(context) and training.any_live() is None
 
     def execute(self, context):
         try:
@@ -186,40 +217,159 @@ class PROMPTGS_OT_train(bpy.types.Operator):
         except training.UserError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        self.report({"INFO"}, f"Training into {context.window_manager.promptgs_run.out_dir}")
+        record = training.shown_record(context.scene)
+        self.report({"INFO"}, f"{record.name}: training into {record.folder}")
         return {"FINISHED"}
-
-    def invoke(self, context, event):
-        if self.execute(context) != {"FINISHED"}:
-            return {"CANCELLED"}
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.25, window=context.window)
-        wm.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context, event):
-        if event.type == "ESC" and event.value == "PRESS":
-            training.cancel_training(context)
-        elif event.type == "TIMER":
-            if not training.drain_and_apply(context):
-                context.window_manager.event_timer_remove(self._timer)
-                return {"FINISHED"}
-        return {"PASS_THROUGH"}
 
 
 class PROMPTGS_OT_cancel(bpy.types.Operator):
-    """Stop the trainer; its last snapshot stays in the scene"""
+    """Stop the shown run's trainer (every process of it); its last snapshot stays shown and Resume continues from its last checkpoint"""
 
     bl_idname = "promptgs.cancel"
     bl_label = "Cancel Training"
+
+    @classmethod
+    def poll(cls, context):
+        live = _shown_live(context)
+        return live is not None and live.progress.status in ("STARTING", "RUNNING")
+
+    def invoke(self, context, event):
+        record = training.shown_record(context.scene)
+        redo = training.unsaved_seconds(record)
+        if redo < training.CONFIRM_AFTER_S:
+            return self.execute(context)
+        return context.window_manager.invoke_confirm(
+            self, event, title="Cancel Training?", confirm_text="Cancel Training", icon="WARNING",
+            message=f"{record.name}: Resume continues from its last checkpoint; the "
+                    f"{training.unsaved_seconds(record) / 60:.0f} min trained since then are trained again")
 
     def execute(self, context):
         training.cancel_training(context)
         return {"FINISHED"}
 
 
+class PROMPTGS_OT_resume(bpy.types.Operator):
+    """Continue this stopped run from its last checkpoint (promptgs train --resume)"""
+
+    bl_idname = "promptgs.resume"
+    bl_label = "Resume"
+
+    name: StringProperty(description="The run (empty: the shown run)")
+
+    @classmethod
+    def poll(cls, context):
+        return training.any_live() is None and any(training.resumable(r) for r in context.scene.promptgs.runs)
+
+    def execute(self, context):
+        try:
+            training.resume_training(context, self.name)
+        except training.UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class PROMPTGS_OT_show_run(bpy.types.Operator):
+    """Show this run's Gaussians (the shown run's are kept, hidden)"""
+
+    bl_idname = "promptgs.show_run"
+    bl_label = "Show Run"
+    bl_options = {"UNDO"}
+
+    name: StringProperty()
+
+    def execute(self, context):
+        try:
+            training.show_run(context, self.name)
+        except training.UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class PROMPTGS_OT_remove_run(bpy.types.Operator):
+    """Forget this run and delete its objects (its folder stays on disk)"""
+
+    bl_idname = "promptgs.remove_run"
+    bl_label = "Remove Run"
+    bl_options = {"UNDO"}
+
+    name: StringProperty()
+
+    def invoke(self, context, event):
+        return context.window_manager.invoke_confirm(self, event)
+
+    def execute(self, context):
+        try:
+            training.remove_run(context, self.name)
+        except training.UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class PROMPTGS_OT_attach_run(bpy.types.Operator):
+    """Make this run, still training for a file that is not open, a run of this scene"""
+
+    bl_idname = "promptgs.attach_run"
+    bl_label = "Attach Here"
+
+    folder: StringProperty()
+
+    def execute(self, context):
+        try:
+            training.attach_here(context, self.folder)
+        except training.UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class PROMPTGS_OT_cancel_detached(bpy.types.Operator):
+    """Stop this run, still training for a file that is not open"""
+
+    bl_idname = "promptgs.cancel_detached"
+    bl_label = "Cancel"
+
+    folder: StringProperty()
+
+    def execute(self, context):
+        training.cancel_detached(self.folder)
+        return {"FINISHED"}
+
+
+class PROMPTGS_OT_notify(bpy.types.Operator):
+    """Show a message in the status bar"""
+
+    bl_idname = "promptgs.notify"
+    bl_label = "PromptGS Message"
+    bl_options = {"INTERNAL"}
+
+    level: EnumProperty(items=[(k, k.title(), "") for k in ("INFO", "WARNING", "ERROR")], default="INFO")
+    message: StringProperty()
+
+    def execute(self, context):  # called from a script: the report goes to the console
+        self.report({self.level}, self.message)
+        return {"FINISHED"}
+
+    def invoke(self, context, event):
+        # What a script-called operator reports goes to the console only; what a modal
+        # operator reports goes to the status bar. So this one waits for one timer event.
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.01, window=context.window)
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        context.window_manager.event_timer_remove(self._timer)
+        self.report({self.level}, self.message)
+        return {"FINISHED"}
+
+
 class PROMPTGS_OT_load_result(bpy.types.Operator, ImportHelper):
-    """Load a 3D Gaussian Splatting PLY as the PromptGS Gaussians object"""
+    """Load a 3D Gaussian Splatting PLY as the PromptGS Gaussians object (the shown run's objects are kept, hidden)"""
 
     bl_idname = "promptgs.load_result"
     bl_label = "Load Result"
@@ -229,14 +379,16 @@ class PROMPTGS_OT_load_result(bpy.types.Operator, ImportHelper):
     filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
 
     def invoke(self, context, event):
-        result = context.window_manager.promptgs_run.result_ply
-        if result and not self.filepath:
-            self.filepath = result
+        record = training.shown_record(context.scene)
+        if record is not None and record.result_ply and not self.filepath:
+            self.filepath = record.result_ply
         return ImportHelper.invoke(self, context, event)
 
     def execute(self, context):
+        training.park(context)  # a run's objects stay that run's
+        context.scene.promptgs.shown_run = ""
         try:
-            obj = training.load_result(context, Path(bpy.path.abspath(self.filepath)))
+            obj = results.load_result(context, Path(bpy.path.abspath(self.filepath)))
         except plyio.PlyError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -244,38 +396,84 @@ class PROMPTGS_OT_load_result(bpy.types.Operator, ImportHelper):
         return {"FINISHED"}
 
 
+class PROMPTGS_OT_export_gaussians(bpy.types.Operator, ExportHelper):
+    """Write the Gaussians, as you edited them (deleted, cropped), to a standard 3DGS PLY in dataset coordinates"""
+
+    bl_idname = "promptgs.export_gaussians"
+    bl_label = "Export Gaussians"
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default="*.ply", options={"HIDDEN"})
+    start_from: BoolProperty(name="Train From It", default=True,
+                             description="Make it the Start From file of the next training")
+
+    def execute(self, context):
+        path = Path(bpy.path.abspath(self.filepath))
+        try:
+            n = results.export_gaussians(context, path)
+        except (ValueError, plyio.PlyError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        if self.start_from:
+            context.scene.promptgs.init_ply = str(path)
+        self.report({"INFO"}, f"Wrote {n} Gaussians to {path}")
+        return {"FINISHED"}
+
+
 class PROMPTGS_OT_find_trainer(bpy.types.Operator):
-    """Look for a Python that has promptgs_engine installed"""
+    """Look for a Python that has promptgs_engine installed (in the background)"""
 
     bl_idname = "promptgs.find_trainer"
     bl_label = "Find Trainer"
 
+    @classmethod
+    def poll(cls, context):
+        return not training.checks_running()[0]
+
     def execute(self, context):
-        found = find_python()
-        if not found:
-            self.report({"WARNING"}, "No Python with promptgs_engine found: set the path yourself")
-            return {"CANCELLED"}
-        prefs(context).python = found
+        training.start_find(context)
         return {"FINISHED"}
 
 
 class PROMPTGS_OT_test_trainer(bpy.types.Operator):
-    """Check the trainer command: engine version and the backends it can use"""
+    """Check the trainer command in the background: engine version and the backends it can use"""
 
     bl_idname = "promptgs.test_trainer"
     bl_label = "Test Trainer"
 
+    @classmethod
+    def poll(cls, context):
+        return bool(prefs(context).python) and not training.checks_running()[1]
+
     def execute(self, context):
+        training.start_probe(context)
+        return {"FINISHED"}
+
+
+class PROMPTGS_OT_setup_trainer(bpy.types.Operator):
+    """Make a Python environment with torch and the engine (from the engine source) and set it as the Trainer Python"""
+
+    bl_idname = "promptgs.setup_trainer"
+    bl_label = "Set Up Trainer"
+
+    @classmethod
+    def poll(cls, context):
+        return not training.setup_running()
+
+    def invoke(self, context, event):
         p = prefs(context)
-        info = probe(bpy.path.abspath(p.python) if p.python else "")
-        if "error" in info:
-            p.probe_result = info["error"]
-            self.report({"ERROR"}, info["error"])
+        return context.window_manager.invoke_confirm(
+            self, event, title="Set Up Trainer?", confirm_text="Set Up", icon="QUESTION",
+            message=f"Make a Python environment in {training.setup_folder(context)} with torch ({p.setup_torch}) "
+                    f"and the engine from {p.setup_source or '(choose the Engine Source first)'}: "
+                    "about 1 GB of downloads and a few minutes of compiling")
+
+    def execute(self, context):
+        try:
+            training.start_setup(context)
+        except training.UserError as exc:
+            self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        backends = ", ".join(info.get("backends") or []) or "none"
-        p.probe_result = (f"promptgs_engine {info.get('version')} (torch {info.get('torch', '?')}), "
-                          f"backends: {backends}" + (f" ({info['gpu']})" if info.get("gpu") else ""))
-        self.report({"INFO"}, p.probe_result)
         return {"FINISHED"}
 
 
@@ -284,6 +482,10 @@ class PROMPTGS_OT_generate_dataset(bpy.types.Operator):
 
     bl_idname = "promptgs.generate_dataset"
     bl_label = "Generate Test Dataset"
+
+    @classmethod
+    def poll(cls, context):
+        return not training.dataset_running()
 
     def execute(self, context):
         settings = context.scene.promptgs
@@ -303,9 +505,13 @@ class PROMPTGS_OT_reconstruct(bpy.types.Operator):
     bl_idname = "promptgs.reconstruct"
     bl_label = "Reconstruct from Photos"
 
-    filepath: StringProperty(subtype="FILE_PATH", description="A video file, or empty to use the folder")
+    filepath: StringProperty(subtype="FILE_PATH", description="A video file; a photo means the folder it is in")
     directory: StringProperty(subtype="DIR_PATH", description="A folder of photos")
     filter_folder: BoolProperty(default=True, options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        return not reconstruct.running()
 
     def invoke(self, context, event):
         context.window_manager.fileselect_add(self)
@@ -313,7 +519,7 @@ class PROMPTGS_OT_reconstruct(bpy.types.Operator):
 
     def execute(self, context):
         path = Path(bpy.path.abspath(self.filepath)) if self.filepath else None
-        source = path if path is not None and path.is_file() else Path(bpy.path.abspath(self.directory))
+        source = reconstruct.source_of(path, Path(bpy.path.abspath(self.directory)))
         try:
             training.start_reconstruction(context, source)
         except training.UserError as exc:
@@ -329,6 +535,10 @@ class PROMPTGS_OT_cancel_reconstruct(bpy.types.Operator):
     bl_idname = "promptgs.cancel_reconstruct"
     bl_label = "Cancel Reconstruction"
 
+    @classmethod
+    def poll(cls, context):
+        return reconstruct.running()
+
     def execute(self, context):
         reconstruct.cancel()
         return {"FINISHED"}
@@ -340,6 +550,10 @@ class PROMPTGS_OT_render_preview(bpy.types.Operator):
     bl_idname = "promptgs.render_preview"
     bl_label = "Render Preview"
 
+    @classmethod
+    def poll(cls, context):
+        return preview.current_job() is None and context.scene.camera is not None and _has_chosen_run(context)
+
     def execute(self, context):
         return _start(self, context, training.start_preview, "preview_message")
 
@@ -350,8 +564,11 @@ def menu_import(self, context):
 
 CLASSES = (
     PROMPTGS_OT_import_colmap, PROMPTGS_OT_use_camera, PROMPTGS_OT_add_prompt, PROMPTGS_OT_select_prompt,
-    PROMPTGS_OT_remove_prompt, PROMPTGS_OT_propose, PROMPTGS_OT_accept_proposal, PROMPTGS_OT_train, PROMPTGS_OT_cancel, PROMPTGS_OT_load_result,
-    PROMPTGS_OT_find_trainer, PROMPTGS_OT_test_trainer, PROMPTGS_OT_generate_dataset,
+    PROMPTGS_OT_remove_prompt, PROMPTGS_OT_propose, PROMPTGS_OT_accept_proposal, PROMPTGS_OT_train,
+    PROMPTGS_OT_cancel, PROMPTGS_OT_resume, PROMPTGS_OT_show_run, PROMPTGS_OT_remove_run, PROMPTGS_OT_attach_run,
+    PROMPTGS_OT_cancel_detached, PROMPTGS_OT_notify, PROMPTGS_OT_load_result,
+    PROMPTGS_OT_export_gaussians,
+    PROMPTGS_OT_find_trainer, PROMPTGS_OT_test_trainer, PROMPTGS_OT_setup_trainer, PROMPTGS_OT_generate_dataset,
     PROMPTGS_OT_render_preview, PROMPTGS_OT_reconstruct, PROMPTGS_OT_cancel_reconstruct,
 )
 

@@ -26,7 +26,7 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
-from . import coords, display, preview, prompts
+from . import coords, display, preview, prompts, results
 from .trainer import TrainerRun, check_python, engine_command, exit_line, start_run
 
 PROPOSED = "PromptGS Proposed"
@@ -254,8 +254,6 @@ def accept(context, obj: bpy.types.Object) -> bpy.types.Object:
 def update_markers(context) -> bpy.types.Object | None:
     """The proposal points (centre, confidence) beside the loss field; removed when no
     proposal is left."""
-    from . import training
-
     cubes = proposed_objects(context.scene)
     marker = bpy.data.objects.get(MARKERS)
     if not cubes:
@@ -268,7 +266,7 @@ def update_markers(context) -> bpy.types.Object | None:
     confidence = np.array([float(c["promptgs_confidence"]) for c in cubes], np.float32)
     # a sphere inside the smallest box: half its shortest half-edge
     half = min(min(c.matrix_world.to_scale()) * c.empty_display_size for c in cubes)
-    marker = display.points_object(MARKERS, training.results_collection(context), root, radius=0.5 * half)
+    marker = display.points_object(MARKERS, results.results_collection(context), root, radius=0.5 * half)
     display.set_points(marker, centres, {"confidence": confidence})
     display.set_style(marker, radius=0.5 * half, spheres=True)
     display.color_by(marker, "confidence")

@@ -14,6 +14,11 @@ from pathlib import Path
 from . import colmap, importer
 from .trainer import TrainerRun, engine_command, start_run
 
+# The engine's video containers (promptgs_engine.sfm.video.VIDEO_SUFFIXES): any other
+# picked file is a photo, and means the folder it is in.
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".mts", ".m2ts", ".mpg", ".mpeg", ".wmv",
+                  ".flv", ".3gp")
+
 _job: TrainerRun | None = None
 _stage: dict = {}  # the job's last sfm_stage event
 
@@ -24,6 +29,18 @@ class ReconstructError(Exception):
 
 def current_job() -> TrainerRun | None:
     return _job
+
+
+def source_of(picked: Path | None, directory: Path) -> Path:
+    """What the file browser's choice means: a video file is itself; a photo (any other
+    file) is the folder it is in; nothing picked is the folder."""
+    if picked is not None and picked.is_file():
+        return picked if picked.suffix.lower() in VIDEO_SUFFIXES else picked.parent
+    return directory
+
+
+def running() -> bool:
+    return _job is not None
 
 
 def start(context, python: str, source: Path, out: Path) -> TrainerRun:

@@ -4,7 +4,7 @@ per-call Python work.
 `torch.optim.Adam(fused=True).step()` spends about 0.1 ms of Python (hooks, grouping by
 device and dtype, argument checks) around a kernel that takes a few microseconds on a
 small model; with one optimiser per parameter that is most of Adam's cost at 200×150
-(docs/results/rasterizer/profile.md). `fused_adam_step` calls the same fused kernel on the
+(`benchmarks/train_profile.py` shows it). `fused_adam_step` calls the same fused kernel on the
 same state (``exp_avg``, ``exp_avg_sq``, ``step``), so results are bit-identical to
 ``opt.step()`` and checkpoints, gsplat's state surgery and the learning-rate schedulers are
 unchanged. Optimisers it does not cover (not fused, AMSGrad, weight decay, several

@@ -1,4 +1,4 @@
-"""The promptgs command line: train, eval, render, propose, sfm, demo, dataset, bench, report, stability.
+"""The promptgs command line: train, eval, render, export, propose, sfm, demo, dataset, bench, report, stability.
 
 Bad input ends with a one-line ``promptgs: error: …`` on stderr and exit code 2.
 """
@@ -65,6 +65,8 @@ def _add_train(sub) -> None:
         help="at 60%% of the run (after growth ends; PromptGS: not before its views reach full size), remove the 40%% of the Gaussians that carry the least "
         "blending weight in the training views (at most 5%% of it), and fine-tune the rest; prompted objects are kept",
     )
+    p.add_argument("--init", help="start from the Gaussians of this .ply, .spz, .gltf or .glb file instead of the SfM points (no sky shell)")
+    p.add_argument("--export", help="also write the final Gaussians as these formats beside RUN/point_cloud.ply: spz, gltf (comma-separated)")
     p.add_argument("--snapshot-every", type=int, help="write a snapshot for the Blender add-on every N steps")
     p.add_argument("--checkpoint-every", type=int)
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
@@ -92,7 +94,7 @@ def _add_train(sub) -> None:
 _TRAIN_KEYS = (
     "dataset", "out", "images", "iterations", "backend", "strategy", "seed", "resolution_scale",
     "sh_degree", "budget", "prompts", "center_prompt", "auto_prompts", "propose_prompts", "sky", "progressive", "screen_filter", "antialiased", "compact", "snapshot_every", "checkpoint_every",
-    "batch_size",
+    "batch_size", "init", "export",
 )
 # Job-file keys that say how to run, not what to train (not TrainConfig fields).
 _RUN_KEYS = ("nproc",)
@@ -132,7 +134,8 @@ def train_config_from_args(args: argparse.Namespace):
 def cmd_train(args: argparse.Namespace) -> int:
     from . import distributed
     from .events import EventWriter
-    from .train import resolve_backend, run_training
+    from .render import resolve_backend
+    from .run import run_training
 
     cfg = train_config_from_args(args)
     nproc = args.nproc
@@ -188,7 +191,11 @@ def _print_metrics(metrics: dict) -> None:
 
 def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="evaluate a run folder on its test views")
-    p.add_argument("run", type=Path)
+    p.add_argument("run", type=Path, help="run folder, or a .ply/.spz/.gltf/.glb file inside one")
+    p.add_argument(
+        "--gaussians", type=Path,
+        help="evaluate this .ply, .spz, .gltf or .glb file with the run's dataset and settings (printed; RUN/metrics.json untouched)",
+    )
     p.add_argument("--masks", type=Path, help="object masks (white = object), same names as the images")
     p.add_argument("--save-renders", action="store_true", help="keep the test-view renders in RUN/renders/")
     p.add_argument("--quiet", action="store_true")
@@ -198,7 +205,8 @@ def _add_eval(sub) -> None:
 def cmd_eval(args: argparse.Namespace) -> int:
     from .evaluation import evaluate_run
 
-    _print_metrics(evaluate_run(args.run, mask_dir=args.masks, quiet=args.quiet, save_renders=args.save_renders))
+    run, gaussians = (args.run.parent, args.run) if args.run.is_file() else (args.run, args.gaussians)
+    _print_metrics(evaluate_run(run, mask_dir=args.masks, quiet=args.quiet, save_renders=args.save_renders, gaussians=gaussians))
     return 0
 
 
@@ -232,6 +240,99 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_export(sub) -> None:
+    from .formats import FORMATS, SPZ_SH_BITS
+
+    p = sub.add_parser("export", help="write a run's Gaussians (or a PLY, SPZ or glTF file) as SPZ, glTF or PLY")
+    p.add_argument("source", type=Path, help="a run folder (its point_cloud.ply) or a .ply, .spz, .gltf or .glb file")
+    p.add_argument("--format", choices=FORMATS, help="spz, gltf (.glb; a .gltf --out writes JSON with the buffer embedded) or ply; default: from --out")
+    p.add_argument("--out", type=Path, help="file to write (default: beside the source, with the format's suffix)")
+    p.add_argument("--sh-degree", type=int, help="keep SH up to this degree (0..3; default: all the source has)")
+    p.add_argument("--spz-version", type=int, choices=(3, 4), default=3,
+                   help="SPZ 3 (gzip; every SPZ reader) or 4 (zstd, a stream per attribute; the default of Niantic's library since March 2026)")
+    p.add_argument("--spz-sh-bits", type=_sh_bits, default=SPZ_SH_BITS, metavar="B1,B2",
+                   help="significant bits of SPZ's SH codes, degree 1 and degrees 2-3 (default 8,8; Niantic's library: 5,4, "
+                   "smaller files and a visible loss: benchmarks/formats.py)")
+    p.set_defaults(func=cmd_export)
+
+
+def _sh_bits(text: str) -> tuple[int, int]:
+    try:
+        first, rest = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two whole numbers like 8,8, got {text!r}") from None
+    if not (1 <= first <= 8 and 1 <= rest <= 8):
+        raise argparse.ArgumentTypeError(f"SH bits are 1..8, got {text!r}")
+    return first, rest
+
+
+def _source(source: Path) -> tuple[Path, bool]:
+    """The Gaussian file of ``source`` and whether it was trained antialiased (a run's setting)."""
+    if source.is_dir():
+        from .config import TrainConfig
+        from .run_folder import CONFIG, FINAL_PLY
+
+        if not (source / CONFIG).is_file():
+            raise PromptGSError(f"{source}: not a PromptGS run folder (no {CONFIG})")
+        if not (source / FINAL_PLY).is_file():
+            raise PromptGSError(f"{source}: no {FINAL_PLY} yet (the run has not finished)")
+        return source / FINAL_PLY, TrainConfig.load(source / CONFIG).antialiased
+    if not source.is_file():
+        raise PromptGSError(f"{source}: no such run folder or file")
+    from .formats import format_of
+
+    format_of(source)
+    return source, False
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from .formats import DEFAULT_SUFFIX, format_of, read_splats, save_gaussians
+
+    path, antialiased = _source(args.source)
+    kind = args.format or (format_of(args.out) if args.out is not None else None)
+    if kind is None:
+        raise PromptGSError("export needs --format (spz, gltf or ply) or an --out file name")
+    out = args.out or path.with_suffix(DEFAULT_SUFFIX[kind])
+    if format_of(out) != kind:
+        raise PromptGSError(f"{out}: the name does not fit --format {kind} (use {DEFAULT_SUFFIX[kind]})")
+    if out.resolve() == path.resolve():
+        raise PromptGSError(f"{path} is already {kind}: give another --out")
+    splats = read_splats(path)
+    splats.antialiased = splats.antialiased or antialiased
+    if args.sh_degree is not None and args.sh_degree > splats.sh_degree:
+        raise PromptGSError(f"{path} has SH up to degree {splats.sh_degree}, not {args.sh_degree}")
+    save_gaussians(out, splats, kind, sh_degree=args.sh_degree, spz_version=args.spz_version, spz_sh_bits=args.spz_sh_bits)
+    size = out.stat().st_size
+    print(f"wrote {out}: {splats.n} Gaussians, {size:,} bytes ({size / max(splats.n, 1):.1f} a Gaussian)")
+    return 0
+
+
+def _add_propose(sub) -> None:
+    from .propose import PROPOSALS_FILE
+
+    p = sub.add_parser("propose", help="propose prompt boxes where the run misses small objects that several views show")
+    p.add_argument("run", type=Path, help="a run folder (its point_cloud.ply, or --snapshot)")
+    p.add_argument("--out", type=Path, help=f"proposal file to write (default RUN/{PROPOSALS_FILE})")
+    p.add_argument("--snapshot", type=Path, help="propose from this snapshot .npz of a run still training (DC colour only)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_propose)
+
+
+def cmd_propose(args: argparse.Namespace) -> int:
+    from .propose import propose_run
+
+    result, path = propose_run(args.run, args.out, args.snapshot, quiet=args.quiet)
+    reasons: dict[str, int] = {}
+    for r in result.rejected:
+        reasons[r.reason] = reasons.get(r.reason, 0) + 1
+    print(f"{len(result.proposals)} proposals, rejected {reasons or 'none'}, "
+          f"{sum(len(v) for v in result.unmatched.values())} unmatched strong candidates; wrote {path}")
+    for i, p in enumerate(result.proposals):
+        print(f"  {i}: confidence {p.confidence:.2f}, centre {[round(v, 3) for v in p.box.center]}, "
+              f"seen by {p.n_seeing} views, supported by {p.n_supporting}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="promptgs", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"promptgs {__version__}")
@@ -246,7 +347,6 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench.grid import add_parser as add_bench
     from .bench.report import add_parser as add_report
     from .bench.stability import add_parser as add_stability
-    from .propose import add_parser as add_propose
     from .synthetic.cli import add_parser as add_dataset
 
     add_demo(sub)
@@ -254,7 +354,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench(sub)
     add_report(sub)
     add_stability(sub)
-    add_propose(sub)
+    _add_export(sub)
+    _add_propose(sub)
     return parser
 
 
@@ -264,6 +365,9 @@ def main(argv: list[str] | None = None) -> int:
     # ignores SIGINT (a background job of a script, some launchers) inherits the ignore
     # and Python then installs no handler: restore it so cancel always works.
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    from .lifeline import watch_from_env
+
+    watch_from_env()  # a client's pipe on stdin (PROMPTGS_LIFELINE=stdin): stop when it closes
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # `train --nproc` hands them to torchrun

@@ -13,30 +13,25 @@ resolution).
 The threshold is a percentile, as LightGaussian prunes by a ratio of its ranking: the 40%
 least important Gaussians go (``fraction``), so a compacted model holds 0.6× the
 Gaussians it grew, unless those 40% carry more than 5% of all the blending weight
-(``max_weight``): then only as many go as carry 5%, and a lean model keeps more. On
-tumbler (3DGS, seed 0, 1500 steps) the 40% least important carried under 1% of the
-weight; on fern, about 3%.
+(``max_weight``): then only as many go as carry 5%, and a lean model keeps more. On the
+real test scenes the 40% least important carry a few percent of the weight at most.
 
 A prompted object can carry little weight in total (a drone covers one pixel in a few
 views) and would fall under any global cut. So with prompts (PromptGS), a Gaussian inside
 a prompt box is kept whenever it carries any blending weight (over ``protect_pixels``,
 0) in some training view: it draws part of what the prompt marks. A drone of two pixels
-is often drawn by several faint Gaussians of a tenth of a pixel each: a floor of a
-quarter of a pixel protected 89 of the 589 seen Gaussians in the box of the `sparse`
-mountain (600 steps, seed 0), the cut took the rest, and recall fell from 0.56 to 0.15.
-The boxes hold few Gaussians (878 of 89.6k there), so keeping them all costs little.
+is often drawn by several faint Gaussians of a tenth of a pixel each, so any higher floor
+lets the cut take most of them and the object with them. The boxes hold about 1% of the
+Gaussians, so keeping them all costs little.
 
 The trainer compacts once, at 60% of the run (`compaction_step`): a tenth of the run after
 densification stops, so that the Gaussians of the last refinement and the opacities
 clamped by the last reset have settled, and the remaining 40%, in which 3DGS only
 fine-tunes, fine-tune the compacted model (LightGaussian prunes and then fine-tunes the
-same way). On tumbler, removing 1% of the weight right where densification stops cost
-0.18 dB; a tenth of the run later, 0.07 dB. A PromptGS run compacts no earlier than its
-first full-size whole view (70% of the run under the progressive schedule, on scenes wide
-enough for it): at 60% the 64-sample mountain (one box, 1500 steps) was still training at
-half size, and the cut cost 0.18 and 0.12 dB at seeds 0 and 1; at full size, 0.10 and
-0.03 dB, and the sparse scene's three seeds moved from −0.05 / −0.01 / −0.09 to
-0.00 / +0.03 / −0.04 dB (docs/results/economy/README.md, "Compaction at full size").
+same way); right where densification stops, the same cut costs more than twice as much
+PSNR. A PromptGS run compacts no earlier than its first full-size whole view (70% of the
+run under the progressive schedule, on scenes wide enough for it): cut while the views
+still train at half size, the model has less full-size fine-tuning left than 3DGS's.
 """
 
 from __future__ import annotations
@@ -49,6 +44,7 @@ import torch
 from gsplat.strategy.ops import remove
 
 from .prompts import PromptBox, contains_any
+from .render import render
 
 log = logging.getLogger("promptgs.compaction")
 
@@ -149,54 +145,46 @@ def compact(
     return summary
 
 
-def compaction_step(trainer) -> int:
-    """The step at which a run compacts: ``COMPACT_AT`` of the run (or
-    ``extra["compaction"]["at"]``, for experiments), never before densification stops nor,
-    in a PromptGS run, before its whole views reach full size (`PromptFocus.full_size_step`).
-    Counted in steps (a step of a batched or distributed run trains several views)."""
-    at = float(trainer.cfg.extra.get("compaction", {}).get("at", COMPACT_AT))
-    steps = trainer.total_steps
-    full_size = trainer.focus.full_size_step() if trainer.focus is not None else 0
-    return min(max(trainer.schedule.refine_stop_iter, full_size, int(at * steps)), steps - 1)
+def compaction_step(total_steps: int, refine_stop_iter: int, full_size_step: int = 0, at: float = COMPACT_AT) -> int:
+    """The step at which a run of ``total_steps`` compacts: ``at`` of the run
+    (`COMPACT_AT`), never before densification stops (``refine_stop_iter``) nor, in a
+    PromptGS run, before its whole views reach full size (``full_size_step``,
+    `focus.PromptFocus.full_size_step`). Counted in steps (a step of a batched or
+    distributed run trains several views)."""
+    return min(max(refine_stop_iter, full_size_step, int(at * total_steps)), total_steps - 1)
 
 
-def maybe_compact(trainer, step: int) -> dict[str, Any] | None:
-    """Called by the trainer after every step of a ``--compact`` run: compacts once, at
-    `compaction_step`."""
-    if step != compaction_step(trainer) or trainer.strategy_state.get("compaction") is not None:
-        return None
-    return compact_trainer(trainer)
-
-
-def compact_trainer(trainer) -> dict[str, Any]:
-    """Compact a `train.Trainer`'s Gaussians now: importance over its training views at
-    the training resolution, rendered as the run renders (filter, mode, backend); the
-    prompts of a PromptGS run protect their objects. The summary is also kept in the
-    strategy state (and so in checkpoints and ``train.json``). ``extra["compaction"]``
-    may set ``fraction``, ``max_weight`` and ``protect_pixels`` (for experiments)."""
-    cfg, params = trainer.cfg, trainer.params
-    options = cfg.extra.get("compaction", {})
-    cameras = [c.downscaled(cfg.downscale) for c in trainer.scene.train_cameras]
-    prompts = list(trainer.focus.prompts) if trainer.focus is not None else []
+def compact_model(
+    params: torch.nn.ParameterDict,
+    optimizers: dict[str, torch.optim.Optimizer],
+    state: dict[str, Any],
+    cameras: Sequence[Any],
+    prompts: Sequence[PromptBox],
+    backend: str,
+    screen_filter: float,
+    rasterize_mode: str,
+    options: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Compact a run's Gaussians now: importance over its training ``cameras`` (at the
+    training resolution), rendered as the run renders (``backend``, ``screen_filter``,
+    ``rasterize_mode``); the ``prompts`` of a PromptGS run protect their objects.
+    ``options`` (a job's ``extra["compaction"]``) may set ``fraction``, ``max_weight`` and
+    ``protect_pixels``, for experiments. Returns the summary of `compact`."""
+    options = options or {}
 
     def render_fn(cams, colors):
-        from .render import render
-
         return render(
             params["means"].detach(), params["quats"].detach(), torch.exp(params["scales"].detach()),
             torch.sigmoid(params["opacities"].detach()), colors,
             torch.stack([c.world_to_camera for c in cams]).to(colors.device), torch.stack([c.K for c in cams]).to(colors.device),
-            cams[0].width, cams[0].height, sh_degree=None, backend=trainer.backend,
-            eps2d=trainer.screen_filter, rasterize_mode=cfg.rasterize_mode,
+            cams[0].width, cams[0].height, sh_degree=None, backend=backend,
+            eps2d=screen_filter, rasterize_mode=rasterize_mode,
         )
 
     importance = blending_weights(render_fn, params, cameras)
-    summary = compact(
-        params, trainer.optimizers, trainer.strategy_state, importance, prompts,
+    return compact(
+        params, optimizers, state, importance, prompts,
         fraction=float(options.get("fraction", REMOVED_FRACTION)),
         max_weight=float(options.get("max_weight", MAX_REMOVED_WEIGHT)),
         protect_pixels=float(options.get("protect_pixels", PROTECT_PIXELS)),
     )
-    summary["step"] = trainer.step
-    trainer.strategy_state["compaction"] = summary
-    return summary

@@ -20,9 +20,8 @@ PROMPTGS_SCREEN_FILTER = 0.1
 # An antialiased filter scales each Gaussian's opacity so the filter keeps its screen-space
 # energy (render.projection.filter_compensation): an object smaller than a pixel then
 # covers its pixel in proportion to its projected area from every distance and at every
-# resolution, as in the ground truth. Off by default: over the benchmark grid it moved
-# recall by +0.03 (one box) and -0.04 (a box per group) and cost 0.4 dB of whole-image
-# PSNR (docs/promptgs.md, "Antialiased").
+# resolution, as in the ground truth. Off by default: over the benchmark grid it did not
+# raise recall and cost whole-image PSNR (docs/promptgs.md, "Antialiased").
 
 
 @dataclass
@@ -65,6 +64,10 @@ class TrainConfig:
     # Views per optimisation step, over all ranks; None: one per rank. The learning rates,
     # Adam and the schedule follow batch.py's rules; `iterations` counts views.
     batch_size: int | None = None
+    # Start from the Gaussians of a PLY, SPZ or glTF file instead of the SfM points (and
+    # no sky shell); write the final Gaussians in more formats beside the PLY (formats/).
+    init: str | None = None
+    export: list = field(default_factory=list)  # of "spz", "gltf", "ply"
     extra: dict = field(default_factory=dict)
 
     @property
@@ -125,6 +128,10 @@ class TrainConfig:
         if not isinstance(self.compact, bool):
             raise PromptGSError(f"compact must be true or false, got {self.compact!r}")
         self.downscale  # validates resolution_scale
+        from .formats import check_init, export_formats
+
+        self.export = export_formats(self.export)
+        check_init(self.init)
 
     def prompt_options(self) -> list[str]:
         """The options asking for prompt boxes (a prompt file or inline boxes, the centre

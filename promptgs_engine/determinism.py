@@ -7,8 +7,7 @@ is sometimes computed by another code path: in about one process in ten (2 threa
 Intel Xeon with AVX-512, torch 2.13) ``torch.sqrt`` of 20,000 doubles differed in the last
 bit from every later call. The sky shell's directions (`sky.fibonacci_directions`) were
 such a first call, so a few of its points moved by one unit in the last place, and the
-whole run parted from its seed's other runs (docs/results/economy/README.md, "Why runs
-parted"). With ``MKL_NUM_THREADS=1`` it did not happen; neither ``MKL_CBWR=AUTO`` nor
+whole run parted from its seed's other runs. With ``MKL_NUM_THREADS=1`` it did not happen; neither ``MKL_CBWR=AUTO`` nor
 ``MKL_DYNAMIC=FALSE`` helped.
 
 `settle_mkl` makes that first call on one thread, with a tensor too small to be split,

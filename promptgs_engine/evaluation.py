@@ -15,39 +15,14 @@ from tqdm import tqdm
 
 from .config import BASELINE_SCREEN_FILTER, TrainConfig
 from .data import Camera, Scene, load_camera_file, load_colmap_scene
-from .errors import PromptGSError
-from .events import read_snapshot_params
-from .gaussians import load_ply, sh_degree_of
 from .data.images import load_image_tensor
+from .errors import PromptGSError
+from .gaussians import sh_degree_of
 from .metrics import masked_psnr, object_recall, object_region_psnr, psnr, resize_mask, ssim
-from .render import render
+from .render import on_backend_device, render
+from .run_folder import METRICS, RENDERS, SUMMARY, load_run
 
-SUMMARY = "train.json"
-METRICS = "metrics.json"
-RENDERS = "renders"  # test-view renders, written when evaluate_run is asked to keep them
 NO_OBJECTS = "gt_nodrones"  # object-free ground truth beside object_masks/ (recall)
-
-
-def load_run(run_dir: Path, snapshot: Path | None = None) -> tuple[TrainConfig, torch.nn.ParameterDict]:
-    """A run's settings and Gaussians: its ``point_cloud.ply``, or a snapshot of it."""
-    run_dir = Path(run_dir)
-    if not (run_dir / "cfg.json").is_file():
-        raise PromptGSError(f"{run_dir}: not a PromptGS run folder (no cfg.json)")
-    cfg = TrainConfig.load(run_dir / "cfg.json")
-    if snapshot is not None:
-        return cfg, read_snapshot_params(snapshot)
-    if not (run_dir / "point_cloud.ply").is_file():
-        raise PromptGSError(f"{run_dir}: no point_cloud.ply yet (the run has not finished); a snapshot can be rendered")
-    return cfg, load_ply(run_dir / "point_cloud.ply")
-
-
-def on_backend_device(params: torch.nn.ParameterDict, backend: str) -> dict[str, torch.Tensor]:
-    """The Gaussians on the device the backend renders on: the GPU for ``cuda``, and for
-    ``auto`` where torch sees one (as the trainer decides); the CPU otherwise."""
-    from .train import resolve_backend  # the trainer's choice of device; train imports this module lazily
-
-    device = torch.device(resolve_backend(backend))
-    return {name: value.detach().to(device) for name, value in params.items()}
 
 
 def render_view(
@@ -209,15 +184,18 @@ def evaluate_run(
     scene: Scene | None = None,
     quiet: bool = False,
     save_renders: bool = False,
+    gaussians: Path | None = None,
 ) -> dict:
     """Evaluate a run folder on its test views; writes and returns ``metrics.json``.
+    With ``gaussians`` (a PLY, SPZ or glTF file), those Gaussians are evaluated with the
+    run's dataset and settings instead, and only returned.
 
     A dataset with ``object_masks/`` is evaluated on them by default, and with
     ``gt_nodrones/`` beside them also for per-object recall. ``save_renders`` keeps the
     test-view renders in ``RUN/renders/``.
     """
     run_dir = Path(run_dir)
-    cfg, params = load_run(run_dir)
+    cfg, params = load_run(run_dir, gaussians=gaussians)
     if scene is None:
         scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     if mask_dir is None and (Path(cfg.dataset) / "object_masks").is_dir():
@@ -229,6 +207,8 @@ def evaluate_run(
         render_dir=run_dir / RENDERS if save_renders else None, screen_filter=cfg.effective_screen_filter,
         rasterize_mode=cfg.rasterize_mode,
     )
+    if gaussians is not None:
+        return {**metrics, "gaussians": str(gaussians), "n_gaussians": int(params["means"].shape[0])}
     summary_path = run_dir / SUMMARY
     if summary_path.is_file():
         metrics = {**json.loads(summary_path.read_text()), **metrics}

@@ -37,12 +37,12 @@ import logging
 import os
 import sys
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import torch
 
-from .config import BASELINE_SCREEN_FILTER
-from .data import Camera
+from .config import BASELINE_SCREEN_FILTER, TrainConfig
+from .data import Camera, Scene
 from .data.images import BoundedCache
 from .errorfield import ErrorField
 from .errors import PromptError
@@ -50,11 +50,13 @@ from .losses import edge_losses_to, sobel_magnitude
 from .prompts import (
     PromptBox, check_visible, load_prompts, placement_warnings, project_box, prompts_from_json, scene_center_prompt,
 )
-from .strategies.promptgs import LAMBDA_DSSIM, LAMBDA_EDGE, LAMBDA_L1, append_gaussians, carve_prompt
+from .propose import TrainingProposer
+from .strategies import DefaultSchedule
+from .strategies.promptgs import LAMBDA_DSSIM, LAMBDA_EDGE, LAMBDA_L1, PromptGSStrategy, append_gaussians, carve_prompt
 from .threads import one_thread
 from .views import (
-    DEFAULT_RATIO, RELATED_MULTIVIEW, SINGLE, ViewSchedule, entries_with_related_steps, related_views, top_k_views,
-    views_cap_from_memory,
+    DEFAULT_RATIO, RELATED_MULTIVIEW, SINGLE, TrainView, ViewSchedule, entries_with_related_steps, related_views,
+    top_k_views, views_cap_from_memory,
 )
 
 log = logging.getLogger("promptgs.focus")
@@ -62,11 +64,9 @@ log = logging.getLogger("promptgs.focus")
 PROGRESSIVE_LEVELS = (8, 4, 2)
 PROGRESSIVE_FRACTION = 7 / 30  # of the run, per level (paper: 7000 of 30000 steps)
 # A level that would leave fewer pixels across is replaced by the coarsest that does not.
-# At 64, the 320 px views of the `sparse` mountain trained at 80 px for 47% of the run;
-# the full-size statistics steps then found the model so loosely fitted that outside the
-# prompts PromptGS grew 1.21x 3DGS's Gaussians (115k against 95k, seed 0); at 100 (2x
-# below full size for 70% of the run) 0.91x. The mountain (480 px: 4x, 4x, 2x), tumbler
-# and fern (2x) are unchanged.
+# Much coarser levels fit a small view so loosely that the full-size statistics steps
+# then find gradients everywhere, and PromptGS grows more Gaussians outside the prompts
+# than 3DGS.
 MIN_PROGRESSIVE_WIDTH = 100
 RESAMPLED_OPACITY = 0.5  # of the Gaussians resampling adds
 SEED_SCALE_PX = 0.7  # width of the Gaussian seeded at a proposed point, in pixels at its depth (as resampling's)
@@ -74,26 +74,20 @@ MIN_RELATED_VIEWS = 3  # as many as resampling's multi-view vote needs
 RELATED_VIEWS = 8  # views per prompt whose crops its related steps train (`PromptFocus.set_prompts`)
 # Views in a related step of the centre prompt (`--center-prompt`); other prompts take the
 # schedule's cap (2). The centre box marks no object, only where the cameras look, and its
-# crops hold the densest part of a real capture (37% of tumbler's frame at 1/4 size), so two
-# of them cost more than a whole view (a view's cost there is mostly per Gaussian). With
-# one, tumbler (1500 steps, seeds 0-5) trains in 1.26x 3DGS's time, not 1.42x, at +0.11 dB
-# (+0.09 with two); fern is unchanged within its spread over seeds. A box around tiny
-# objects keeps two: on the 64-sample mountain (one box, seed 0) one crop a step took
-# recall from 0.78 to 0.68 (docs/promptgs.md, "Views in a related step").
+# crops hold the densest part of a real capture (a third of the frame), so two of them
+# cost more than a whole view (a view's cost there is mostly per Gaussian) and gain
+# nothing over one. A box around tiny objects keeps two: with one crop a step, fewer of
+# its objects are recovered (docs/promptgs.md, "Views in a related step").
 CENTRE_PROMPT_VIEWS_PER_STEP = 1
 # Those crops also take every training view that sees the centre box in turn, not only
-# the RELATED_VIEWS (8) most relevant (`PromptFocus.set_prompts`): the box marks where all the
-# cameras look, not an object that some views see best. Fern's loss against 3DGS sat
-# inside the box (0.4-1.2 dB under it in the test views, seed 1); with every view in turn,
-# fern over six seeds went from -0.16 to -0.04 dB against 3DGS on the same machine
-# (docs/promptgs.md, "Views in a related step").
+# the RELATED_VIEWS (8) most relevant (`PromptFocus.set_prompts`): the box marks where all
+# the cameras look, not an object that some views see best, and training its crops from
+# a few views only loses PSNR in the others (docs/promptgs.md, "Views in a related step").
 # The view schedule of a run whose only prompt is the centre box: one related step in a
 # cycle of nine, where other runs have two in ten (`views.DEFAULT_RATIO`); the whole-view
-# steps are the same (8 per cycle), so 1500 iterations take 1688 steps, not 1875. Over six
-# seeds tumbler went from +0.07 to +0.38 dB against 3DGS and from 1.48x to 1.31x its time
-# (median per seed); fern's own mean moved by -0.02 dB (-0.08 against 3DGS, 1.23x -> 1.21x
-# its time). The box marks no object, and its crops train the densest part of the frame
-# again (docs/results/economy/README.md, "Half the centre box's related steps").
+# steps are the same (8 per cycle), so 1500 iterations take 1688 steps, not 1875. The box
+# marks no object, and its crops train the densest part of the frame again: the second
+# related step costs time and does not raise PSNR.
 CENTRE_PROMPT_RATIO = (2, 3, 1, 3)
 # While densification runs, every FULL_SIZE_EVERY-th single-view step renders the whole
 # view at full size with 3DGS's screen filter: the growth statistics outside the prompts
@@ -101,37 +95,31 @@ CENTRE_PROMPT_RATIO = (2, 3, 1, 3)
 FULL_SIZE_EVERY = 2
 # From this fraction of the densification window on, every single-view step does. Late in
 # a long run most Gaussians sit just under 3DGS's threshold, and a mean gradient over a
-# third of 3DGS's views crosses it by chance more often: at 7000 steps on the sparse
-# mountain (one box, seeds 0-2) PromptGS grew 37-38k outside over the last half of the
-# refinements against 3DGS's 25k and ended at 1.11-1.15x its count; with every single-view
-# step voting from here, 25k and 1.02-1.05x, PSNR within 0.01 dB (docs/results/economy,
-# "Where the late growth comes from"). From the start of densification it also met the
-# count (0.95x) but lost recall (0.82/0.74/0.82 -> 0.72/0.64/0.64); from a quarter of the
-# window it met the count at 7000 steps, but at 1500 put a mountain run 0.9% over 3DGS's
-# count and lowered the sparse scene's recall (0.70 -> 0.62 on the mean of three seeds).
+# third of 3DGS's views crosses it by chance more often, so PromptGS would end over 3DGS's
+# count. Voting with every single-view step from the start of densification (or from a
+# quarter of the window) meets the count but costs the prompts' objects.
 EVERY_SINGLE_VIEW_FROM = 0.5
-# Screen filter (px²) of the low-resolution steps: 3DGS's. At 4x below full size the
-# run's narrower filter (0.1) let the terrain alias: PromptGS lost 1.6 dB of PSNR on the
-# mountain (one seed) when every step used it, and 0.1 dB with this split.
+# Screen filter (px²) of the low-resolution steps: 3DGS's. Below full size the run's
+# narrower filter (0.1) lets the terrain alias.
 LOW_RES_SCREEN_FILTER = BASELINE_SCREEN_FILTER
 # Screen filter of the statistics steps (`PromptFocus.is_statistics_step`): 3DGS's. Under
 # the narrow filter a flat surface drawn by Gaussians smaller than a pixel shows gaps,
-# their gradients rise, and growth fills them: on a 64 px toy scene PromptGS grew 82k
-# Gaussians against 3DGS's 65k, and 60k with 3DGS's filter on these steps.
+# their gradients rise, and growth fills them with more Gaussians than 3DGS grows.
 STATISTICS_SCREEN_FILTER = BASELINE_SCREEN_FILTER
 
 
 @dataclass
-class TrainView:
-    """A camera to render this step (possibly a crop) and its ground-truth image."""
+class LiveModel:
+    """The model as the prompt bookkeeping sees it after a step: the Gaussians, their
+    optimisers and the strategy's state (resampling and proposal seeds add Gaussians to
+    all three, in place), the run's render of one camera (`train.Trainer.render_camera`)
+    and the SH degree the run trains at this step."""
 
-    camera: Camera
-    gt: torch.Tensor  # [H, W, 3]
-    source: int  # index of the training camera
-    crop: bool = False  # a crop around a prompt (related-view step), not the whole image
-    statistics: bool = False  # a statistics step: the only kind that votes for growth outside the prompts
-    screen_filter: float | None = None  # px²; None: the run's (full-size renders)
-    window: tuple[int, int, int, int] | None = None  # a crop's (x0, y0, width, height) in the source view
+    params: torch.nn.ParameterDict
+    optimizers: dict[str, torch.optim.Optimizer]
+    state: dict[str, Any]
+    render_camera: Callable[[Camera], tuple[torch.Tensor, torch.Tensor, dict]]
+    sh_degree: int
 
 
 # Bytes of ground-truth edge maps kept between steps (`ReferenceEdges`).
@@ -190,10 +178,8 @@ def run_length(cfg) -> int:
     (a file, the centre box, or boxes found during the run) adds its related steps, which
     train crops around the prompts, on top: 1500 iterations take 1875 steps at 2:3:2:3
     (1688 at `CENTRE_PROMPT_RATIO`, the centre box alone), so the scene outside the
-    prompts gets as many optimisation steps as under 3DGS. Taken
-    out of the 1500 instead, the crops of the centre box (13% of fern's frame) left the
-    rest 20% fewer steps, and fern 0.27 dB under the same run without related steps
-    (seeds 0-2; docs/results/economy/README.md, "Related steps on top"). The trainer
+    prompts gets as many optimisation steps as under 3DGS (taken out of the iterations
+    instead, they leave the rest of the scene fewer steps and lower its PSNR). The trainer
     stretches 3DGS's schedule for ``cfg.iterations`` over the whole run (as many growth
     rounds and opacity resets as the 3DGS run); the learning-rate decay and the
     progressive levels span it too. Other runs: ``cfg.iterations``."""
@@ -225,31 +211,50 @@ def available_memory_bytes() -> int:
 
 
 class PromptFocus:
+    """The prompt side of a PromptGS run (module docstring): it plans each step's views,
+    observes each step's losses, and after a step resamples in the prompts and adds the
+    prompts that the error field or the proposer find.
+
+    It is given what it reads: the run's settings (``cfg``), the ``scene``, the stretched
+    3DGS ``schedule`` and the run's ``total_steps``, the PromptGS ``strategy`` it keeps
+    informed of the prompts, the ``device`` ground truth goes to, the starting ``prompts``
+    (`load_prompt_setting`) and, with ``--propose-prompts``, the ``proposer``. The
+    Gaussians it may grow come with each call that grows them (`LiveModel`)."""
+
     def __init__(
-        self, trainer, prompts: list[PromptBox], max_views: int = 2, related_k: int = RELATED_VIEWS, field_every: int = 10
+        self,
+        cfg: TrainConfig,
+        scene: Scene,
+        schedule: DefaultSchedule,
+        total_steps: int,
+        strategy: PromptGSStrategy,
+        device: torch.device,
+        prompts: list[PromptBox],
+        proposer: TrainingProposer | None = None,
+        max_views: int = 2,
+        related_k: int = RELATED_VIEWS,
+        field_every: int = 10,
     ):
-        self.trainer = trainer
-        cfg = trainer.cfg
-        self.cameras = trainer.scene.train_cameras
+        self.growth_schedule = schedule
+        self.total_steps = total_steps
+        self.strategy = strategy
+        self.device = device
+        self.cameras = scene.train_cameras
+        self.points = scene.points
         self.base_downscale = cfg.downscale
         self.full_cameras = [c.downscaled(self.base_downscale) for c in self.cameras]
         self.prompts: list[PromptBox] = []
         self.related: list[list[int]] = []
         self.related_k = related_k
         self.field_every = field_every  # the field moves slowly; back-projecting every step costs ~10% of a step
-        self.field = ErrorField.from_extent(trainer.scene.extent, resolution=128)
+        self.field = ErrorField.from_extent(scene.extent, resolution=128)
         self.reference_edges = ReferenceEdges()
         self.auto_prompts = int(cfg.auto_prompts or 0)
         self.auto_prompt_step = None
-        sched = trainer.schedule
         if self.auto_prompts:
-            self.auto_prompt_step = sched.densification_step(0.25)
-        self.proposer = None
-        if cfg.propose_prompts:
-            from .propose import TrainingProposer
-
-            self.proposer = TrainingProposer(trainer, self.full_cameras, given=prompts)
-        self.resample_every = max(2 * sched.refine_every, 20)
+            self.auto_prompt_step = schedule.densification_step(0.25)
+        self.proposer = proposer
+        self.resample_every = max(2 * schedule.refine_every, 20)
         self.progressive = cfg.progressive if cfg.progressive is not None else True
         cam0 = self.full_cameras[0]
         bytes_per_view = cam0.width * cam0.height * 4 * 64  # image, alpha, depth and their gradients
@@ -262,7 +267,8 @@ class PromptFocus:
         # The boxes the user drew (not the centre box; proposals come later): resampling
         # votes for fainter errors in them (`carve_error_threshold`).
         self.drawn_prompts = [p for p in prompts if p != self.centre_prompt]
-        # When a list, observe() leaves error-field points here instead of adding them (batch.py).
+        # When a list, observe() leaves error-field points here instead of adding them
+        # (a batched step adds every rank's points in batch order).
         self.field_sink: list | None = None
         self.set_prompts(prompts)
 
@@ -271,7 +277,7 @@ class PromptFocus:
     def set_prompts(self, prompts: list[PromptBox]) -> None:
         if prompts:
             check_visible(prompts, self.full_cameras, source="prompts")
-            for line in placement_warnings(prompts, self.full_cameras, self.trainer.scene.points, [c.name for c in self.full_cameras]):
+            for line in placement_warnings(prompts, self.full_cameras, self.points, [c.name for c in self.full_cameras]):
                 warn(line)
         self.prompts = list(prompts)
         self.related = related_views(self.prompts, self.full_cameras, self.related_k) if self.prompts else []
@@ -292,7 +298,7 @@ class PromptFocus:
             [v if len(v) >= MIN_RELATED_VIEWS else [] for v in regions],
             views_per_step=[CENTRE_PROMPT_VIEWS_PER_STEP if p == self.centre_prompt else None for p in self.prompts],
         )
-        self.trainer.strategy.set_prompts(self.prompts)
+        self.strategy.set_prompts(self.prompts)
         log.info("%d prompts; related views %s", len(self.prompts), self.related)
 
     # -- views ------------------------------------------------------------------------
@@ -310,20 +316,20 @@ class PromptFocus:
         width = self.full_cameras[0].width
         coarsest = max([1] + [f for f in PROGRESSIVE_LEVELS if width // f >= MIN_PROGRESSIVE_WIDTH])
         levels = [min(f, coarsest) for f in PROGRESSIVE_LEVELS]
-        stage = int(step / (PROGRESSIVE_FRACTION * self.trainer.total_steps))
+        stage = int(step / (PROGRESSIVE_FRACTION * self.total_steps))
         return levels[stage] if stage < len(levels) else 1
 
     def full_size_step(self) -> int:
         """The first step whose whole-view renders are at full size (`downscale_at` is 1
         from there on; 0 without the progressive schedule). `downscale_at` never rises with
         the step, so a binary search finds it (`compaction_step` asks after every step)."""
-        return bisect.bisect_left(range(self.trainer.total_steps), True, key=lambda s: self.downscale_at(s) == 1)
+        return bisect.bisect_left(range(self.total_steps), True, key=lambda s: self.downscale_at(s) == 1)
 
     def every_single_view_step(self) -> int:
         """The first step from which every single-view step of the densification window is
         a statistics step (`EVERY_SINGLE_VIEW_FROM` of the window; before it, every
         FULL_SIZE_EVERY-th one)."""
-        return self.trainer.schedule.densification_step(EVERY_SINGLE_VIEW_FROM)
+        return self.growth_schedule.densification_step(EVERY_SINGLE_VIEW_FROM)
 
     def is_statistics_step(self, step: int, kind: str, entry: int | None = None) -> bool:
         """Whether a single-view step is a statistics step: while densification runs, every
@@ -334,7 +340,7 @@ class PromptFocus:
         outside the prompts from these steps alone: outside the prompts they grow where
         3DGS's would, measured as 3DGS measures (about 30% of the steps in the first half
         of the window, 60% in the second)."""
-        sched = self.trainer.schedule
+        sched = self.growth_schedule
         if step >= sched.refine_stop_iter or kind != SINGLE:
             return False
         entry = step if entry is None else entry
@@ -358,7 +364,7 @@ class PromptFocus:
             cw, ch = max(min(w, cam.width), 16), max(min(h, cam.height), 16)
             cx0 = min(max((x0 + x1) // 2 - cw // 2, 0), cam.width - cw)
             cy0 = min(max((y0 + y1) // 2 - ch // 2, 0), cam.height - ch)
-            gt = cam.load_image(window=(cx0, cy0, cw, ch), device=self.trainer.device)
+            gt = cam.load_image(window=(cx0, cy0, cw, ch), device=self.device)
             out.append(TrainView(crop_camera(cam, cx0, cy0, cw, ch), gt, v, crop=True, window=(cx0, cy0, cw, ch)))
         # A batch renders at one size: keep the views whose crop matches the first.
         size = (out[0].camera.width, out[0].camera.height)
@@ -380,7 +386,7 @@ class PromptFocus:
         out = []
         for v in batch.views:
             cam = self.full_cameras[v].downscaled(factor)
-            out.append(TrainView(cam, cam.load_image(device=self.trainer.device), v, screen_filter=screen_filter, statistics=statistics))
+            out.append(TrainView(cam, cam.load_image(device=self.device), v, screen_filter=screen_filter, statistics=statistics))
         size = (out[0].camera.width, out[0].camera.height)
         return [t for t in out if (t.camera.width, t.camera.height) == size]
 
@@ -414,7 +420,7 @@ class PromptFocus:
         info["votes_outside"] = all(v.statistics for v in views)
         # Below full resolution (progressive schedule); a crop is at full resolution.
         info["downscale"] = 1.0 if info["crop_step"] else self.full_cameras[views[0].source].width / views[0].camera.width
-        if self.trainer.strategy.takes_statistics(step, info):  # the per-view losses weigh the scores
+        if self.strategy.takes_statistics(step, info):  # the per-view losses weigh the scores
             ref_edges = torch.stack([self.reference_edges.of(v) for v in views]).to(rendered.device)
             info["view_loss"] = (
                 LAMBDA_L1 * l1_map.mean(dim=(1, 2)) + LAMBDA_DSSIM * dssim_map.mean(dim=(1, 2))
@@ -429,8 +435,10 @@ class PromptFocus:
             else:
                 self.field.accumulate(loss_map[i], depth[i], alpha[i], v.camera, step=step, top_q=0.1)
 
-    def after_step(self, step: int) -> None:
-        sched = self.trainer.schedule
+    def after_step(self, step: int, model: LiveModel) -> None:
+        """After step ``step``: add the error field's prompts (``--auto-prompts``) or the
+        proposer's (``--propose-prompts``) at their steps, and resample in the prompts at
+        the resampling steps, growing ``model``."""
         if self.auto_prompt_step is not None and step == self.auto_prompt_step:
             proposals = self.field.peaks(self.auto_prompts)
             visible = []
@@ -443,17 +451,17 @@ class PromptFocus:
             log.info("step %d: %d automatic prompts from the error field", step, len(visible))
             self.set_prompts(self.prompts + visible)
         if self.proposer is not None and self.proposer.is_step(step):
-            self.set_prompts(self.prompts + self.proposer.run(step, self.prompts))
-            self.seed_proposals(step, self.proposer.trained)
+            self.set_prompts(self.prompts + self.proposer.run(step, self.prompts, model.params, model.sh_degree))
+            self.seed_proposals(step, model, self.proposer.trained)
         if self.prompts and self.is_resample_step(step):
-            self.resample(step)
+            self.resample(step, model)
 
     def is_resample_step(self, step: int) -> bool:
         """Resampling steps, counted from the last opacity reset: the first one refinement
         interval after it, then every ``resample_every`` steps. Right after a reset every
         opacity is clamped low, the render is mostly empty and every pixel looks wrong, so
         carving then would scatter Gaussians through the whole box."""
-        sched = self.trainer.schedule
+        sched = self.growth_schedule
         if not sched.refine_start_iter < step < sched.refine_stop_iter:
             return False
         since_reset = step % sched.reset_every
@@ -463,14 +471,15 @@ class PromptFocus:
         """The least per-pixel error that votes for resampling in ``box``: lower in a box
         the user drew around objects than in one the run made (a proposal, the centre box);
         `strategies.promptgs.CARVE_ERROR_THRESHOLD` says why."""
-        strategy = self.trainer.strategy
         if box in self.drawn_prompts:
-            return strategy.carve_drawn_error_threshold
-        return strategy.carve_error_threshold
+            return self.strategy.carve_drawn_error_threshold
+        return self.strategy.carve_error_threshold
 
     @torch.no_grad()
-    def resample(self, step: int) -> int:
-        t = self.trainer
+    def resample(self, step: int, model: LiveModel) -> int:
+        """Carve each prompt from its related views' crops (`strategies.promptgs.carve_prompt`)
+        and add the consistent high-error points to ``model`` as small Gaussians, within
+        the strategy's budget; the number added."""
         added = 0
         for region, box in enumerate(self.prompts):
             views = self._crop_views(region, self.related[region])
@@ -478,30 +487,30 @@ class PromptFocus:
                 continue
             triples = []
             for view in views:
-                img, _, _ = t.render_camera(view.camera)
+                img, _, _ = model.render_camera(view.camera)
                 triples.append((view.camera, img.clamp(0, 1).cpu(), view.gt.cpu()))  # carving runs on the CPU
-            budget = t.strategy.effective_budget(t.strategy_state)
-            room = None if budget is None else max(budget - t.n_gaussians, 0)
+            budget = self.strategy.effective_budget(model.state)
+            room = None if budget is None else max(budget - int(model.params["means"].shape[0]), 0)
             max_points = 1000 if room is None else min(1000, room)
             if max_points <= 0:
                 break
             carved = carve_prompt(
                 box, triples, max_points=max_points, error_threshold=self.carve_error_threshold(box),
-                max_candidates=t.strategy.carve_max_candidates, generator=self.generator, opacity=RESAMPLED_OPACITY,
+                max_candidates=self.strategy.carve_max_candidates, generator=self.generator, opacity=RESAMPLED_OPACITY,
             )
             if carved.means.shape[0]:
                 jitter = (torch.rand(carved.means.shape, generator=self.generator) - 0.5) * carved.voxel * 0.5
                 added += append_gaussians(
-                    t.params, t.optimizers, t.strategy_state, carved.means + jitter, carved.colors,
+                    model.params, model.optimizers, model.state, carved.means + jitter, carved.colors,
                     scale=carved.voxel * 0.7, opacity=RESAMPLED_OPACITY, step=step,
                 )
         if added:
-            t.strategy.record_resampled(t.strategy_state, added)
+            self.strategy.record_resampled(model.state, added)
             log.info("step %d: resampled %d Gaussians in prompts", step, added)
         return added
 
     @torch.no_grad()
-    def seed_proposals(self, step: int, proposals) -> int:
+    def seed_proposals(self, step: int, model: LiveModel, proposals) -> int:
         """One small Gaussian at each proposal's triangulated point (``proposals.Proposal``),
         of its candidates' median image colour, ``SEED_SCALE_PX`` pixels wide at its
         depth, opacity `RESAMPLED_OPACITY`: the point that SfM did not triangulate. The
@@ -509,22 +518,16 @@ class PromptFocus:
         prompt (protected from pruning for ``protect_steps``), not as a resampled one:
         several views agreed on it. Judged as resampled, a seed could be removed as idle
         (`strategies.promptgs.PromptGSStrategy.idle_resampled`) before the related steps
-        had fitted it: on the 64-sample mountain (1500 steps) drones 5 and 10 at seed 0
-        and drone 5 at seed 1 were lost (no Gaussian within their radius over opacity
-        0.004), although their proposals lay within 0.02 of them, and the drones' masked
-        PSNR spread 25.2-29.0 dB over seeds 0-2; judged as grown, 28.8-28.9 dB with no
-        drone lost (the sparse scene pays a few faint pairs: recall 0.68 against 0.73 over
-        five seeds; docs/results/proposals/README.md, "Seeds judged as grown")."""
-        t = self.trainer
+        had fitted it, and objects whose proposals lay right on them were lost."""
         added = 0
         for p in proposals:
             added += append_gaussians(
-                t.params, t.optimizers, t.strategy_state, torch.tensor([p.point], dtype=torch.float32),
+                model.params, model.optimizers, model.state, torch.tensor([p.point], dtype=torch.float32),
                 torch.tensor([p.colour], dtype=torch.float32), scale=SEED_SCALE_PX * p.pixel,
                 opacity=RESAMPLED_OPACITY, step=step, carved=False,
             )
         if added:
-            t.strategy.record_resampled(t.strategy_state, added)
+            self.strategy.record_resampled(model.state, added)
             log.info("step %d: seeded %d Gaussians at proposed points", step, added)
         return added
 

@@ -1,18 +1,16 @@
 """Proposing prompts from a run: render every training view at full size, gather the
 residual evidence (`residuals`), keep what several views agree on (`proposals`).
 
-Used by ``promptgs propose RUN`` (a finished run, or a snapshot of one still training)
-and by the trainer's ``--propose-prompts`` (`TrainingProposer`, called from
-`focus.PromptFocus`).
+Used by ``promptgs propose RUN`` (`propose_run`: a finished run, or a snapshot of one
+still training) and by the trainer's ``--propose-prompts`` (`TrainingProposer`, which
+`focus.PromptFocus` calls at its steps).
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
-import math
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -20,11 +18,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .data import Camera
+from .data import Camera, load_colmap_scene
 from .errors import PromptError
+from .gaussians import sh_degree_of
 from .prompts import PromptBox, check_visible, contains_any
 from .proposals import Proposal, ProposalSet, ProposalSettings, group_boxes, load_proposals, merge_rounds, propose
+from .render import on_backend_device, render, resolve_backend
 from .residuals import ResidualSettings, ViewEvidence, view_evidence
+from .run_folder import load_run
 
 log = logging.getLogger("promptgs.propose")
 
@@ -33,9 +34,9 @@ PROPOSALS_FILE = "proposals.json"
 TRAIN_MIN_CONFIDENCE = 0.3
 # The trainer groups proposals whose centres chain within this many times the median
 # box edge (about 60-80 pixels at the objects' depth: their crops would overlap) into one
-# prompt. On the mountain (600 steps, seed 0) a small box around each of the 16 drones,
-# drawn from step 0 at their true positions, trained them to recall 0.55; the dataset's
-# box per group of drones reaches 0.74 (docs/results/history.md, 600 steps).
+# prompt: a small box around each object, even at its true position from step 0, trains
+# a group of neighbours worse than one box around the group does (its related steps see
+# each object in fewer, smaller crops).
 GROUP_LINK_EDGES = 8.0
 
 
@@ -44,10 +45,9 @@ def proposal_step(refine_start: int, refine_stop: int, reset_every: int) -> int:
     By then the render has been through a reset and regrown, so what it still misses is
     missing, not just late; right after a reset every opacity is low and everything looks
     missing. Resampling keeps most of the densification window (at 600 steps: step 150
-    of 10–300, resampling at 190, 230, 290; at 1500: 225 of 25–750). Proposals from a
-    PromptGS run without prompts on the mountain (seed 0) held the 16 true drones and 25
-    wrong boxes on distant terrain the render had not fitted yet at step 97, and the 16
-    drones and two boxes of confidence under 0.15 at step 150. A run too short to reset
+    of 10–300, resampling at 190, 230, 290; at 1500: 225 of 25–750). Earlier, before the
+    first reset has passed, the proposals hold the true objects and as many wrong boxes
+    on distant terrain that the render has not fitted yet. A run too short to reset
     proposes half-way through the window."""
     step = reset_every + reset_every // 2
     if not refine_start < step < refine_stop:
@@ -59,9 +59,9 @@ def proposal_steps(refine_start: int, refine_stop: int, reset_every: int) -> lis
     """The steps the trainer proposes at: `proposal_step`, and one opacity reset later
     where that is still inside the refinement window (at 600 steps: 150 and 250; at
     1500: 225 and 375). The second round adds only what the first one's prompts do not
-    hold: on the sparse mountain (seed 3), the render at step 150 had drawn something at
-    the depth of four drones in every view, so they were rejected as lying on its
-    surface; at step 250 three of them are proposed."""
+    hold: where the render of the first round had drawn something at an object's depth in
+    every view, the object was rejected as lying on its surface, and a reset later it is
+    proposed."""
     first = proposal_step(refine_start, refine_stop, reset_every)
     second = first + reset_every
     return [first, second] if refine_start < second < refine_stop else [first]
@@ -116,9 +116,6 @@ def visible_boxes(boxes: Sequence[PromptBox], cameras: Sequence[Camera]) -> list
 
 def params_renderer(params, backend: str, screen_filter: float, rasterize_mode: str, sh_degree: int | None = None) -> RenderFn:
     """A `RenderFn` drawing ``params`` (a Gaussian ParameterDict) with RGB and expected depth."""
-    from .gaussians import sh_degree_of
-    from .render import render
-
     degree = sh_degree_of(params) if sh_degree is None else sh_degree
 
     @torch.no_grad()
@@ -138,13 +135,10 @@ def params_renderer(params, backend: str, screen_filter: float, rasterize_mode: 
 def propose_run(run_dir: Path, out: Path | None = None, snapshot: Path | None = None, quiet: bool = False) -> tuple[ProposalSet, Path]:
     """Proposals for a run folder (its ``point_cloud.ply``, or ``snapshot``), written to
     ``out`` (default ``RUN/proposals.json``)."""
-    from .data import load_colmap_scene
-    from .evaluation import load_run, on_backend_device
-
     cfg, params = load_run(run_dir, snapshot)
     scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
     cameras = [c.downscaled(cfg.downscale) for c in scene.train_cameras]
-    backend = "cuda" if cfg.backend in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
+    backend = resolve_backend(cfg.backend)
     draw = params_renderer(on_backend_device(params, backend), backend, cfg.effective_screen_filter, cfg.rasterize_mode)
     result = propose_views(draw, cameras, quiet=quiet, points=scene.points)
     result.info.update({"run": str(Path(run_dir).resolve()), "dataset": str(cfg.dataset),
@@ -163,34 +157,54 @@ def proposals_to_seed(
     proposal box (``earlier``: their boxes of training confidence) holds. Each object is
     seeded once, by the first round that finds it. An object that an earlier round missed
     but whose point lies inside a prompt an earlier round added (a group of its
-    neighbours) is seeded too: checked against those group prompts instead, the 64-sample
-    mountain's drone 6, proposed only by the second round of seed 4, got no seed, the
-    Gaussians resampling put there faded within 30 steps, twice, and it was missed in
-    every test view (docs/results/economy/README.md, "A drone proposed late")."""
+    neighbours) is seeded too: checked against those group prompts instead, an object
+    that only the second round proposed got no seed, the Gaussians resampling put there
+    faded, and it was missed in every view."""
     points = torch.tensor([p.point for p in proposals], dtype=torch.float64).reshape(-1, 3)
     held = contains_any([*given, *earlier], points).tolist()
     return [p for p, h in zip(proposals, held) if not h]
 
 
 class TrainingProposer:
-    """The trainer's ``--propose-prompts``: at each of `proposal_steps` it renders every
-    training view at full size, proposes, writes ``RUN/proposals.json`` (what every round
-    so far proposed, `merge_rounds`; ``RUN/proposals_stepNNNNNN.json`` keeps each round's
-    own) and returns the prompts to add:
-    the proposals of at least `TRAIN_MIN_CONFIDENCE`, grouped (`GROUP_LINK_EDGES`), whose
-    centre no existing prompt holds (the file's ``trained_as`` lists them and their
-    members). The trainer seeds a Gaussian at each of `trained` (`proposals_to_seed`).
-    ``given``: the prompts the run started with (a prompt file, the centre box)."""
+    """The trainer's ``--propose-prompts``: at each of its ``steps`` (`proposal_steps`) it
+    renders every training view at full size, proposes, writes ``RUN/proposals.json``
+    (what every round so far proposed, `merge_rounds`; ``RUN/proposals_stepNNNNNN.json``
+    keeps each round's own) and returns the prompts to add: the proposals of at least
+    `TRAIN_MIN_CONFIDENCE`, grouped (`GROUP_LINK_EDGES`), whose centre no existing prompt
+    holds (the file's ``trained_as`` lists them and their members). The trainer seeds a
+    Gaussian at each of `trained` (`proposals_to_seed`).
 
-    def __init__(self, trainer, cameras: Sequence[Camera], given: Sequence[PromptBox] = ()):
-        self.trainer = trainer
+    ``cameras``: the training views at full training size; ``points``: the dataset's SfM
+    points; ``given``: the prompts the run started with (a prompt file, the centre box);
+    ``run_dir``: the run folder, written only where ``writes`` (rank 0 of a distributed
+    run); ``backend``, ``screen_filter`` and ``rasterize_mode``: how the run renders."""
+
+    def __init__(
+        self,
+        cameras: Sequence[Camera],
+        points: torch.Tensor,
+        steps: Sequence[int],
+        run_dir: Path,
+        dataset: str,
+        backend: str,
+        screen_filter: float,
+        rasterize_mode: str,
+        given: Sequence[PromptBox] = (),
+        writes: bool = True,
+    ):
         self.cameras = list(cameras)
+        self.points = points
+        self.steps = list(steps)
+        self.run_dir = Path(run_dir)
+        self.dataset = dataset
+        self.backend = backend
+        self.screen_filter = screen_filter
+        self.rasterize_mode = rasterize_mode
         self.given = list(given)
-        sched = trainer.schedule
-        self.steps = proposal_steps(sched.refine_start_iter, sched.refine_stop_iter, sched.reset_every)
+        self.writes = writes
         self.result: ProposalSet | None = None
         self.trained: list[Proposal] = []  # the proposals the last `run` trained (their boxes)
-        path = Path(trainer.out) / PROPOSALS_FILE
+        path = self.run_dir / PROPOSALS_FILE
         if path.is_file():  # a resumed run: the snapshot keeps showing what was proposed
             try:
                 self.result = _result_from_file(path)
@@ -200,14 +214,14 @@ class TrainingProposer:
     def is_step(self, step: int) -> bool:
         return step in self.steps
 
-    def run(self, step: int, existing: Sequence[PromptBox]) -> list[PromptBox]:
-        """Propose from the current parameters; the prompts to add (the groups whose centre
-        no ``existing`` prompt holds). `trained` is then the proposals to seed: those of
-        confidence ≥ `TRAIN_MIN_CONFIDENCE` that `proposals_to_seed` keeps."""
-        t = self.trainer
-        draw = params_renderer(t.params, t.backend, t.screen_filter, t.cfg.rasterize_mode, t.active_sh_degree(step))
-        result = propose_views(draw, self.cameras, points=t.scene.points)
-        result.info.update({"step": step, "dataset": str(t.cfg.dataset), "resolution": [self.cameras[0].width, self.cameras[0].height]})
+    def run(self, step: int, existing: Sequence[PromptBox], params, sh_degree: int) -> list[PromptBox]:
+        """Propose from the Gaussians ``params`` drawn at ``sh_degree``; the prompts to add
+        (the groups whose centre no ``existing`` prompt holds). `trained` is then the
+        proposals to seed: those of confidence ≥ `TRAIN_MIN_CONFIDENCE` that
+        `proposals_to_seed` keeps."""
+        draw = params_renderer(params, self.backend, self.screen_filter, self.rasterize_mode, sh_degree)
+        result = propose_views(draw, self.cameras, points=self.points)
+        result.info.update({"step": step, "dataset": self.dataset, "resolution": [self.cameras[0].width, self.cameras[0].height]})
         boxes = visible_boxes(result.boxes(TRAIN_MIN_CONFIDENCE), self.cameras)
         earlier = self.result.boxes(TRAIN_MIN_CONFIDENCE) if self.result is not None else []
         self.trained = proposals_to_seed([p for p in result.proposals if any(p.box is b for b in boxes)], self.given, earlier)
@@ -224,9 +238,9 @@ class TrainingProposer:
         self.result = merge_rounds(self.result, result)
         # Every rank of a distributed run proposes from the same parameters and gets the same
         # boxes; rank 0 alone writes the files: all rounds so far, and each round by its step.
-        if t.dist.is_writer:
-            self.result.save(Path(t.out) / PROPOSALS_FILE)
-            result.save(Path(t.out) / f"proposals_step{step:06d}.json")
+        if self.writes:
+            self.result.save(self.run_dir / PROPOSALS_FILE)
+            result.save(self.run_dir / f"proposals_step{step:06d}.json")
         log.info("step %d: %d proposed prompts (%d rejected hypotheses; candidates per view: median %d)",
                  step, len(groups), len(result.rejected), int(sorted(result.n_candidates.values())[len(result.n_candidates) // 2]))
         return groups
@@ -240,28 +254,3 @@ def _result_from_file(path: Path) -> ProposalSet:
     boxes, conf = load_proposals(path)
     props = [Proposal(b, c, b.center, [], 0, 0, 0.0, 0.0) for b, c in zip(boxes, conf)]
     return ProposalSet(props, [], {}, {})
-
-
-# -- command line ---------------------------------------------------------------------------
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser("propose", help="propose prompt boxes where the run misses small objects that several views show")
-    p.add_argument("run", type=Path, help="a run folder (its point_cloud.ply, or --snapshot)")
-    p.add_argument("--out", type=Path, help=f"proposal file to write (default RUN/{PROPOSALS_FILE})")
-    p.add_argument("--snapshot", type=Path, help="propose from this snapshot .npz of a run still training (DC colour only)")
-    p.add_argument("--quiet", action="store_true")
-    p.set_defaults(func=cmd_propose)
-
-
-def cmd_propose(args: argparse.Namespace) -> int:
-    result, path = propose_run(args.run, args.out, args.snapshot, quiet=args.quiet)
-    reasons: dict[str, int] = {}
-    for r in result.rejected:
-        reasons[r.reason] = reasons.get(r.reason, 0) + 1
-    print(f"{len(result.proposals)} proposals, rejected {reasons or 'none'}, "
-          f"{sum(len(v) for v in result.unmatched.values())} unmatched strong candidates; wrote {path}")
-    for i, p in enumerate(result.proposals):
-        print(f"  {i}: confidence {p.confidence:.2f}, centre {[round(v, 3) for v in p.box.center]}, "
-              f"seen by {p.n_seeing} views, supported by {p.n_supporting}")
-    return 0

@@ -11,8 +11,7 @@ then run inline, without waking anyone) and puts the count back afterwards, also
 error. The block's results are the same bits: the operations it is used around are
 element-wise, gathers and scatters whose sums do not depend on how the work is split
 (`tests/test_threads.py`, and whole runs compared to the last bit). Used around the
-strategies' statistics and `PromptFocus.observe`; timed whole runs:
-docs/results/economy/README.md, "PromptGS's bookkeeping on one thread, timed whole".
+strategies' statistics and `PromptFocus.observe`.
 """
 
 from __future__ import annotations

@@ -1,19 +1,22 @@
 """The training loop: 3DGS optimisation with a pluggable densification strategy.
 
-A run folder holds ``cfg.json`` (settings), ``train.log``, ``ckpt.pt`` (the last good
-checkpoint, resumable), ``snapshots/`` (for the Blender add-on), and at the end
-``point_cloud.ply`` and ``metrics.json``. Files are written atomically, so a crash or a
-cancel never leaves a half-written checkpoint, and a failed run keeps the last good one.
+`Trainer` owns the Gaussians, their optimisers, the strategy and (PromptGS) the prompt
+bookkeeping of one run, and steps them: one view or one multiview batch a step, or a
+global batch of views over several ranks (batch.py). It writes checkpoints and snapshots
+into the run folder (run_folder.py) atomically, so a crash or a cancel never leaves a
+half-written checkpoint and a failed run keeps the last good one; `run.run_training`
+is the whole job around it.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +25,11 @@ import torch
 from tqdm import tqdm
 
 from .adam import fused_adam_step
-from .batch import BatchedSteps, adam_settings, scale_schedule, steps_for
+from .batch import (
+    adam_settings, fresh_statistics, max_statistics_keys, merge_statistics, rank_share, scale_schedule, steps_for,
+    sum_statistics_keys,
+)
+from .compaction import COMPACT_AT, compact_model, compaction_step
 from .config import TrainConfig
 from .data import Camera, Scene, load_colmap_scene
 from .data.images import preload_images
@@ -30,45 +37,21 @@ from .determinism import settle_mkl
 from .distributed import RANK_PARAMS_ENV, Dist
 from .errors import PromptGSError, TrainingError
 from .events import EventWriter, write_snapshot
-from .focus import PromptFocus, TrainView, load_prompt_setting, run_length
+from .focus import LiveModel, PromptFocus, load_prompt_setting, run_length
+from .formats import load_gaussians, save_exports
 from .gaussians import PARAM_KEYS, init_from_points, save_ply
 from .losses import photometric_maps
 from .metrics import loss_and_mse, mse_to_psnr
-from .prompts import check_visible
-from .render import render
+from .propose import TrainingProposer, proposal_steps
+from .render import render, resolve_backend
+from .run_folder import CHECKPOINT, FINAL_PLY, atomic_torch_save
 from .sky import sky_points
 from .strategies import DefaultSchedule, make_default_strategy
-from .strategies.default import BACKGROUND, BACKGROUND_RADIUS
+from .strategies.default import BACKGROUND, BACKGROUND_RADIUS, STATISTICS_MERGED
 from .strategies.promptgs import LAST_ROUND_JUDGED_AT, PromptGSStrategy
+from .views import TrainView
 
 log = logging.getLogger("promptgs.train")
-
-CHECKPOINT = "ckpt.pt"
-FINAL_PLY = "point_cloud.ply"
-
-
-def resolve_backend(backend: str) -> str:
-    if backend == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if backend == "cuda" and not torch.cuda.is_available():
-        raise PromptGSError("backend 'cuda' requested but torch sees no CUDA GPU (use --backend cpu)")
-    return backend
-
-
-def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
-    """Refuse to write over a finished or interrupted run unless told to."""
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise PromptGSError(f"{out}: exists and is not a folder")
-    if overwrite or resume:
-        return
-    if (out / FINAL_PLY).exists() or (out / "metrics.json").exists():
-        raise PromptGSError(f"{out}: already holds a finished run (use another --out, or --overwrite)")
-    if (out / CHECKPOINT).exists():
-        raise PromptGSError(f"{out}: holds an unfinished run (use --resume to continue it, or --overwrite)")
-    if (out / "cfg.json").exists():
-        raise PromptGSError(f"{out}: holds a run that stopped before its first checkpoint (use --overwrite to start it again)")
 
 
 def make_optimizers(params: torch.nn.ParameterDict, cfg: TrainConfig, extent: float, batch_size: int = 1) -> dict:
@@ -108,12 +91,6 @@ def first_non_finite(params: torch.nn.ParameterDict | dict[str, torch.Tensor]) -
         if not bool(torch.isfinite(total)) and not bool(torch.isfinite(value).all()):
             return key
     return None
-
-
-def atomic_torch_save(obj: Any, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    tmp.replace(path)
 
 
 @dataclass
@@ -160,14 +137,16 @@ class Trainer:
         points, colors = self.scene.points.float(), self.scene.point_colors.float()
         self.n_sky_points = 0
         sky_radius = 0.0
-        if cfg.sky and points.shape[0]:
+        if cfg.sky and points.shape[0] and not cfg.init:
             sky, sky_colors, sky_radius = sky_points(self.scene.train_cameras, points)
             points, colors = torch.cat([points, sky]), torch.cat([colors, sky_colors])
             self.n_sky_points = sky.shape[0]
             log.info("%d SfM points and %d far background (sky) points", self.scene.points.shape[0], self.n_sky_points)
-        self.params = init_from_points(
-            points, colors, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity
+        self.params = (
+            load_gaussians(cfg.init, sh_degree=cfg.sh_degree) if cfg.init
+            else init_from_points(points, colors, sh_degree=cfg.sh_degree, init_opacity=cfg.init_opacity)
         ).to(self.device)
+        self.n_initial = self.n_gaussians  # what the run starts from (train.json)
         self.optimizers = make_optimizers(self.params, cfg, self.scene.extent, self.batch_size)
         gamma = 0.01 ** (1.0 / self.total_steps)
         self.schedulers = [torch.optim.lr_scheduler.ExponentialLR(self.optimizers["means"], gamma=gamma)]
@@ -185,11 +164,12 @@ class Trainer:
         self.step = 0
         self.train_seconds = 0.0
         self._order: list[int] = []
-        self.focus = None
-        if cfg.strategy == "promptgs":
-            self.focus = PromptFocus(self, load_prompt_setting(cfg, self.scene))
+        self.focus = self._make_focus() if cfg.strategy == "promptgs" else None
+        if self.focus is not None:
             self.strategy.attention_fn = lambda pts: self.focus.field.attention(pts.cpu(), self.focus.prompts)
-        self.batched = BatchedSteps(self) if self.dist.distributed or self.batch_size > 1 else None
+        # Several views a step, or several ranks: `_train_batch`.
+        self.batched = self.dist.distributed or self.batch_size > 1
+        self.entry = 0  # the next entry of PromptGS's view schedule a batched step takes
 
     # -- set-up -----------------------------------------------------------------------
 
@@ -209,6 +189,22 @@ class Trainer:
             protect_steps=max(sched.reset_every, 2 * sched.refine_every),
             last_round_judgement_step=max(int(LAST_ROUND_JUDGED_AT * self.total_steps), sched.refine_stop_iter),
             **self.cfg.extra.get("promptgs", {}),
+        )
+
+    def _make_focus(self) -> PromptFocus:
+        cfg = self.cfg
+        prompts = load_prompt_setting(cfg, self.scene)
+        proposer = None
+        if cfg.propose_prompts:
+            sched = self.schedule
+            proposer = TrainingProposer(
+                [c.downscaled(cfg.downscale) for c in self.scene.train_cameras], self.scene.points,
+                proposal_steps(sched.refine_start_iter, sched.refine_stop_iter, sched.reset_every),
+                run_dir=self.out, dataset=str(cfg.dataset), backend=self.backend, screen_filter=self.screen_filter,
+                rasterize_mode=cfg.rasterize_mode, given=prompts, writes=self.dist.is_writer,
+            )
+        return PromptFocus(
+            cfg, self.scene, self.schedule, self.total_steps, self.strategy, self.device, prompts, proposer=proposer
         )
 
     def preload_images(self) -> bool:
@@ -299,8 +295,8 @@ class Trainer:
         return photometric_maps(img, gt, self.cfg.ssim_lambda)
 
     def train_step(self) -> StepResult:
-        if self.batched is not None:
-            return self.batched.train_step()
+        if self.batched:
+            return self._train_batch()
         step = self.step
         views = self.plan_step(step)
         cameras = [v.camera for v in views]
@@ -326,6 +322,117 @@ class Trainer:
         self.update(step, info)
         return StepResult(loss=loss_value, psnr=mse_to_psnr(mse_value))
 
+    # -- a step of several views, or of several ranks (batch.py) ---------------------
+
+    def _plan_batch(self, step: int) -> list[TrainView] | list[int]:
+        """The step's global batch: TrainViews (PromptGS: schedule entries until the batch
+        holds ``batch_size`` views), or training-camera indices (the baselines, whose
+        images only the rank that trains on them loads)."""
+        if self.focus is None:
+            return [self.next_camera_index() for _ in range(self.batch_size)]
+        views: list[TrainView] = []
+        while len(views) < self.batch_size:
+            views += self.focus.plan(step, entry=self.entry)
+            self.entry += 1
+        return views
+
+    def _batch_view(self, planned: TrainView | int) -> TrainView:
+        if not isinstance(planned, int):
+            return planned
+        camera = self.scene.train_cameras[planned].downscaled(self.cfg.downscale)
+        return TrainView(camera, camera.load_image(device=self.device), planned)
+
+    def _train_batch(self) -> StepResult:
+        """One step over a global batch of views: this rank's share rendered and
+        back-propagated view by view, then gradients, statistics and losses summed over
+        ranks in one all-reduce (batch.py describes the arithmetic)."""
+        step = self.step
+        planned = self._plan_batch(step)
+        n = len(planned)
+        mine = rank_share(n, self.dist.rank, self.dist.world_size)
+        collect = step < self.strategy.refine_stop_iter  # gsplat's strategies stop collecting there
+        delta = None
+        if collect:
+            keys = sum_statistics_keys(self.strategy_state) + max_statistics_keys(self.strategy)
+            delta = fresh_statistics(self.strategy_state, keys, self.n_gaussians, self.device)
+        with_depth = self.focus is not None and self.focus.feeds_field(step)
+        field_points: list[tuple[int, torch.Tensor, torch.Tensor]] = []
+        totals = torch.zeros(2)  # loss and squared error, summed over this rank's views
+        names = []
+        for i in mine:
+            view = self._batch_view(planned[i])
+            names.append(view.camera.name)
+            loss, mse = self._train_batch_view(step, view, n, with_depth, delta, field_points, i)
+            totals += torch.tensor([loss, mse])
+        grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in self.params.values()]
+        summed_keys = sum_statistics_keys(self.strategy_state) if collect else []
+        stats = [delta[k] for k in summed_keys]
+        reduced = self.dist.all_reduce_sum(grads + stats + [totals.to(self.device)])
+        if self.dist.distributed:
+            for p, g in zip(self.params.values(), reduced[: len(grads)]):
+                p.grad = g
+        loss_value, mse_value = (float(v) / n for v in reduced[-1].cpu())
+        if not math.isfinite(loss_value):
+            cameras = ", ".join(names) or "on other ranks"
+            raise TrainingError(f"step {step}: the loss is {loss_value} (a batch with cameras {cameras})")
+        info: dict[str, Any] = {STATISTICS_MERGED: True}
+        if collect:
+            summed = dict(zip(summed_keys, reduced[len(grads) : len(grads) + len(stats)]))
+            maximised = {k: self.dist.all_reduce_max(delta[k]) for k in max_statistics_keys(self.strategy)}
+            merge_statistics(self.strategy_state, summed, maximised)
+        if self.focus is not None and with_depth:
+            self._add_field_points(step, field_points)
+        self.update(step, info)
+        if step % self.schedule.refine_every == 0:
+            self.dist.check_agreement(step, self.params)
+        return StepResult(loss=loss_value, psnr=mse_to_psnr(mse_value))
+
+    def _train_batch_view(
+        self,
+        step: int,
+        view: TrainView,
+        n: int,
+        with_depth: bool,
+        delta: dict[str, Any] | None,
+        field_points: list[tuple[int, torch.Tensor, torch.Tensor]],
+        index: int,
+    ) -> tuple[float, float]:
+        """Render one view of a batch of ``n``, back-propagate its share of the loss, add
+        its statistics to ``delta`` and its error-field points (as view ``index``) to
+        ``field_points``; (loss, mse)."""
+        out, alpha, info = self.render_cameras(
+            [view.camera], sh_degree=self.active_sh_degree(step), screen_filter=view.screen_filter, absgrad=self.absgrad,
+            render_mode="RGB+ED" if with_depth else "RGB",
+        )
+        img = out[..., :3]
+        gt = view.gt[None].to(self.device)
+        loss, l1_map, dssim_map = self.image_loss(img, gt)
+        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
+        (loss / n).backward()
+        # The strategies undo the loss's 1/n on view-space gradients by n_cameras.
+        info["n_cameras"] = n
+        if self.focus is not None:
+            sink: list = []
+            self.focus.field_sink = sink
+            try:
+                self.focus.observe(
+                    step, [view], img.detach(), l1_map.detach(), dssim_map.detach(),
+                    out[..., 3].detach() if with_depth else None, alpha[..., 0].detach(), info,
+                )
+            finally:
+                self.focus.field_sink = None
+            field_points += [(index, pts, vals) for pts, vals in sink]
+        if delta is not None:
+            self.strategy._update_state(self.params, delta, info, packed=False)
+        return loss_and_mse(loss, img, gt)
+
+    def _add_field_points(self, step: int, mine: list[tuple[int, torch.Tensor, torch.Tensor]]) -> None:
+        """Every rank's error-field points of this step, added view by view in batch order."""
+        gathered = self.dist.all_gather_object(mine, what="the error-field gather")
+        everyone = sorted((item for part in gathered for item in part), key=lambda item: item[0])
+        for _, pts, vals in everyone:
+            self.focus.field.add_points(pts, vals, step)
+
     def update(self, step: int, info: dict) -> None:
         """Apply the step's gradients, then the schedules, the strategy's refinement and
         PromptGS's bookkeeping."""
@@ -334,12 +441,37 @@ class Trainer:
             sched.step()
         self.strategy.step_post_backward(self.params, self.optimizers, self.strategy_state, step, info, packed=False)
         if self.focus is not None:
-            self.focus.after_step(step)
-        if self.cfg.compact:
-            from .compaction import maybe_compact
-
-            maybe_compact(self, step)
+            self.focus.after_step(step, self.live_model(step))
+        if self.cfg.compact and step == self.compaction_at and self.strategy_state.get("compaction") is None:
+            self.compact(step)
         self.check_finite()
+
+    def live_model(self, step: int) -> LiveModel:
+        """The Gaussians as PromptGS's bookkeeping may read and grow them after ``step``."""
+        return LiveModel(self.params, self.optimizers, self.strategy_state, self.render_camera, self.active_sh_degree(step))
+
+    @functools.cached_property
+    def compaction_at(self) -> int:
+        """The step a ``--compact`` run compacts at (`compaction.compaction_step`);
+        ``extra["compaction"]["at"]`` may move it, for experiments."""
+        at = float(self.cfg.extra.get("compaction", {}).get("at", COMPACT_AT))
+        full_size = self.focus.full_size_step() if self.focus is not None else 0
+        return compaction_step(self.total_steps, self.schedule.refine_stop_iter, full_size, at)
+
+    def compact(self, step: int) -> dict[str, Any]:
+        """Compact the Gaussians now (`compaction.compact_model`) over the training views at
+        the training size, the prompts protecting their objects; the summary is kept in the
+        strategy state (and so in checkpoints and ``train.json``)."""
+        cfg = self.cfg
+        summary = compact_model(
+            self.params, self.optimizers, self.strategy_state,
+            [c.downscaled(cfg.downscale) for c in self.scene.train_cameras],
+            list(self.focus.prompts) if self.focus is not None else [],
+            self.backend, self.screen_filter, cfg.rasterize_mode, cfg.extra.get("compaction", {}),
+        )
+        summary["step"] = step
+        self.strategy_state["compaction"] = summary
+        return summary
 
     def check_finite(self) -> None:
         key = first_non_finite(self.params)
@@ -364,7 +496,7 @@ class Trainer:
             "order": list(self._order),
             "torch_rng": torch.get_rng_state(),
             "focus": self.focus.state_dict() if self.focus is not None else None,
-            "batch": self.batched.state_dict() if self.batched is not None else {"entry": self.step},
+            "batch": {"entry": self.entry if self.batched else self.step},
         }
 
     def save_checkpoint(self) -> None:
@@ -396,9 +528,9 @@ class Trainer:
         self.train_seconds = float(ckpt["train_seconds"])
         if self.focus is not None and ckpt.get("focus"):
             self.focus.load_state_dict(ckpt["focus"])
-        if self.batched is not None:
+        if self.batched:
             # A checkpoint of a run at one view a step has consumed one schedule entry a step.
-            self.batched.load_state_dict(ckpt.get("batch") or {"entry": self.step})
+            self.entry = int((ckpt.get("batch") or {"entry": self.step})["entry"])
 
     def snapshot(self) -> Path | None:
         if not self.dist.is_writer:
@@ -469,6 +601,7 @@ class Trainer:
         self.save_checkpoint()
         if self.dist.is_writer:
             save_ply(self.params, self.out / FINAL_PLY)
+            save_exports(self.params, self.out / FINAL_PLY, cfg.export, antialiased=cfg.antialiased)
         if self.events.enabled and not cfg.snapshot_every:
             self.snapshot()
         log.info("trained %d steps in %.1f s, %d Gaussians", self.step, self.train_seconds, self.n_gaussians)
@@ -480,6 +613,7 @@ class Trainer:
             "steps": self.step,  # with PromptGS's related steps (focus.run_length)
             "train_seconds": self.train_seconds,
             "n_gaussians": self.n_gaussians,
+            "initial_gaussians": self.n_initial,  # the --init file's, or the SfM points (and sky shell)
             "backend": self.backend,
             "strategy": self.cfg.strategy,
             "peak_rss_mb": peak_rss_mb(),
@@ -513,95 +647,3 @@ def peak_gpu_mb(device: torch.device) -> float | None:
     if device.type != "cuda":
         return None
     return torch.cuda.max_memory_allocated(device) / (1024.0 * 1024.0)
-
-
-def _attach_log_file(path: Path) -> logging.Handler:
-    handler = logging.FileHandler(path)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    root = logging.getLogger("promptgs")
-    root.setLevel(logging.INFO)
-    root.addHandler(handler)
-    return handler
-
-
-def run_training(
-    cfg: TrainConfig,
-    resume: bool = False,
-    overwrite: bool = False,
-    events: EventWriter | None = None,
-    quiet: bool = False,
-    dist: Dist | None = None,
-) -> dict:
-    """Train a run folder from start (or from its checkpoint), evaluate it, return metrics.
-
-    The dataset and the prompts are read before anything is written, so bad input
-    leaves ``cfg.out`` untouched. On failure the error is logged and sent as an event,
-    and the last good checkpoint stays in the run folder. In a distributed run (``dist``)
-    every rank trains and rank 0 alone writes the run folder, sends events and evaluates;
-    the other ranks return an empty dict.
-    """
-    import json
-
-    from .evaluation import SUMMARY, evaluate_run
-
-    settle_mkl()  # before the scene is read (determinism.py)
-    dist = dist or Dist()
-    writer = dist.is_writer
-    events = (events or EventWriter()) if writer else EventWriter()
-    out = Path(cfg.out)
-    check_out_dir(out, resume, overwrite)
-    if resume and not (out / CHECKPOINT).is_file():
-        raise PromptGSError(f"{out}: nothing to resume (no {CHECKPOINT})")
-    if resume and (out / "cfg.json").is_file():
-        saved = TrainConfig.load(out / "cfg.json")
-        saved.iterations = cfg.iterations  # a resumed run may be extended
-        cfg = saved
-    cfg.validate()
-    # The run folder records its views per step: a resumed run keeps them at any world size.
-    cfg.batch_size = int(cfg.batch_size or dist.world_size)
-    # The run folder records the filter its renders use (evaluation renders with it too).
-    cfg.screen_filter = cfg.effective_screen_filter
-    scene = load_colmap_scene(cfg.dataset, images=cfg.images, test_every=cfg.test_every)
-    if cfg.strategy == "promptgs" and cfg.prompts is not None and not resume:
-        # The prompts are input too: a missing or malformed file, or a box that no training
-        # camera sees, ends here, before the run folder is written.
-        boxes = load_prompt_setting(replace(cfg, center_prompt=False))
-        if boxes:
-            source = "job file prompts" if isinstance(cfg.prompts, (dict, list)) else str(cfg.prompts)
-            check_visible(boxes, scene.train_cameras, source=source)
-    dist.barrier("the start (every rank reads the run folder before rank 0 writes it)")
-    log_path = out / "train.log"
-    handler = None
-    if writer:
-        out.mkdir(parents=True, exist_ok=True)
-        if overwrite and not resume:
-            for name in (CHECKPOINT, FINAL_PLY, "metrics.json", SUMMARY):
-                (out / name).unlink(missing_ok=True)
-        (out / "cfg.json").write_text(json.dumps(cfg.to_json(), indent=2))
-        handler = _attach_log_file(log_path)
-    trainer = None
-    try:
-        trainer = Trainer(cfg, scene=scene, events=events, quiet=quiet or not writer, dist=dist)
-        if resume:
-            trainer.load_checkpoint(out / CHECKPOINT)
-            log.info("resumed at step %d", trainer.step)
-        if dist.distributed:
-            log.info("%d ranks (%s), %d views a step", dist.world_size, dist.backend, trainer.batch_size)
-        summary = trainer.train()
-        if not writer:
-            return {}
-        (out / SUMMARY).write_text(json.dumps(summary, indent=2))
-        metrics = evaluate_run(out, scene=scene, quiet=trainer.quiet, save_renders=cfg.save_test_renders)
-        events.emit("done", out=str(out), ply=str(out / FINAL_PLY), metrics={k: v for k, v in metrics.items() if k != "per_image"})
-        return metrics
-    except (Exception, KeyboardInterrupt) as exc:
-        step = trainer.step if trainer is not None else None
-        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        if writer:
-            log.exception("training failed at step %s", step)
-        events.emit("error", message=message, step=step, log=str(log_path))
-        raise
-    finally:
-        if handler is not None:
-            logging.getLogger("promptgs").removeHandler(handler)
-            handler.close()

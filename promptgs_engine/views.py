@@ -35,6 +35,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .data import Camera
 from .prompts import BoxProjection, CameraLike, PromptBox, project_box
 
 __all__ = [
@@ -51,6 +52,7 @@ __all__ = [
     "RELATED_MULTIVIEW",
     "DEFAULT_RATIO",
     "entries_with_related_steps",
+    "TrainView",
 ]
 
 RANDOM_MULTIVIEW = "random_multiview"
@@ -281,3 +283,17 @@ class ViewSchedule:
         while True:
             yield self.batch(step)
             step += 1
+
+
+@dataclass
+class TrainView:
+    """A camera a training step renders (possibly a crop of a training view) and its
+    ground-truth image."""
+
+    camera: Camera
+    gt: torch.Tensor  # [H, W, 3]
+    source: int  # index of the training camera
+    crop: bool = False  # a crop around a prompt (related-view step), not the whole image
+    statistics: bool = False  # a statistics step: the only kind that votes for growth outside the prompts
+    screen_filter: float | None = None  # px²; None: the run's (full-size renders)
+    window: tuple[int, int, int, int] | None = None  # a crop's (x0, y0, width, height) in the source view

@@ -2,7 +2,7 @@
 
 Every line runs the same checks (tests/test_blender_addon.py, tests/test_blender_train.py)
 in its own interpreter. The ``bpy`` wheel of a line needs one Python minor version (4.2 to
-5.0: 3.11; 5.1 and 5.2: 3.13). For each line a virtual environment with that wheel is made
+5.0: 3.11; 5.1 to 5.3: 3.13). For each line a virtual environment with that wheel is made
 once in a cache folder outside the repository (``$PROMPTGS_BLENDER_LINES_CACHE``, default
 ``~/.cache/promptgs/blender-lines``) and reused; the interpreter that runs the tests is
 used directly when it already has the line's ``bpy``.
@@ -45,6 +45,7 @@ LINES = (
     BlenderLine("5.0", "5.0.1", "3.11"),
     BlenderLine("5.1", "5.1.2", "3.13"),
     BlenderLine("5.2 LTS", "5.2.3", "3.13"),
+    BlenderLine("5.3", "5.3.0", "3.13"),
 )
 
 
@@ -93,6 +94,11 @@ def _has_bpy(python_version: str, bpy_version: str) -> bool:
         return importlib.metadata.version("bpy") == bpy_version
     except importlib.metadata.PackageNotFoundError:
         return False
+
+
+def own_line() -> BlenderLine | None:
+    """The line whose bpy the interpreter running the tests has, if any."""
+    return next((line for line in LINES if _has_bpy(line.python, line.bpy)), None)
 
 
 def line_python(line: BlenderLine, cache: Path | None = None) -> str:

@@ -55,35 +55,41 @@ def _compare_with_pycolmap(model: colmap.Model, path: Path) -> None:
     np.testing.assert_array_equal(model.colors[order], [rec.points3D[i].color for i in ids])
 
 
-def test_binary_model_matches_pycolmap(shared_data):
-    path = colmap.find_model_dir(shared_data / "tumbler")
+def test_binary_model_matches_pycolmap(pinhole_scene):
+    path = colmap.find_model_dir(pinhole_scene.path)
+    assert sorted(path.glob("*.bin")) and not sorted(path.glob("*.txt"))
     model = colmap.read_model(path)
-    assert len(model.images) == 77 and len(model.points) == 9262
+    assert len(model.images) == pinhole_scene.n_images and len(model.points) == pinhole_scene.n_points
+    assert {i: c.model for i, c in model.cameras.items()} == pinhole_scene.models
     _compare_with_pycolmap(model, path)
 
 
-def test_text_model_matches_pycolmap(shared_data):
-    path = colmap.find_model_dir(shared_data / "fern")
+def test_text_model_matches_pycolmap(distorted_scene):
+    path = colmap.find_model_dir(distorted_scene.path)
+    assert sorted(path.glob("*.txt")) and not sorted(path.glob("*.bin"))
     model = colmap.read_model(path)
-    assert len(model.images) == 20 and model.cameras[1].model == "SIMPLE_RADIAL"
+    assert len(model.images) == distorted_scene.n_images and len(model.points) == distorted_scene.n_points
+    assert {i: c.model for i, c in model.cameras.items()} == distorted_scene.models
     _compare_with_pycolmap(model, path)
 
 
-def test_text_and_binary_forms_agree(shared_data, tmp_path):
+def test_text_and_binary_forms_agree(pinhole_scene, tmp_path):
     pycolmap = pytest.importorskip("pycolmap")
-    rec = pycolmap.Reconstruction(str(shared_data / "tumbler" / "sparse" / "0"))
+    rec = pycolmap.Reconstruction(str(pinhole_scene.model_dir))
     rec.write_text(str(tmp_path))
-    text, binary = colmap.read_model(tmp_path), colmap.read_model(shared_data / "tumbler" / "sparse" / "0")
+    text, binary = colmap.read_model(tmp_path), colmap.read_model(pinhole_scene.model_dir)
     assert [im.name for im in text.sorted_images()] == [im.name for im in binary.sorted_images()]
     np.testing.assert_allclose(text.points, binary.points, atol=1e-9)
     _compare_with_pycolmap(text, tmp_path)
 
 
-def test_distortion_is_reported(shared_data):
-    model = colmap.read_model(colmap.find_model_dir(shared_data / "fern"))
-    note = model.cameras[1].distortion_note()
-    assert "SIMPLE_RADIAL" in note and "k=0.01975" in note
-    assert colmap.read_model(colmap.find_model_dir(shared_data / "tumbler")).cameras[1].distortion_note() == ""
+def test_distortion_is_reported(distorted_scene, pinhole_scene):
+    model = colmap.read_model(colmap.find_model_dir(distorted_scene.path))
+    note = "; ".join(c.distortion_note() for c in model.cameras.values())
+    for word in distorted_scene.distortion_words:
+        assert word in note, (word, note)
+    pinhole = colmap.read_model(colmap.find_model_dir(pinhole_scene.path))
+    assert all(c.distortion_note() == "" for c in pinhole.cameras.values())
 
 
 def test_bad_models_name_the_file(tmp_path):
@@ -100,10 +106,13 @@ def test_bad_models_name_the_file(tmp_path):
         colmap.read_model(tmp_path)
 
 
-def test_projection_through_blender_camera_settings(shared_data):
-    """Blender's view frame from the camera settings reproduces COLMAP's pixel."""
-    model = colmap.read_model(colmap.find_model_dir(shared_data / "tumbler"))
-    for image in model.sorted_images()[:5]:
+def test_projection_through_blender_camera_settings(pinhole_scene):
+    """Blender's view frame from the camera settings reproduces COLMAP's pixel (in the made
+    scene for both of its cameras, one with non-square pixels)."""
+    model = colmap.read_model(colmap.find_model_dir(pinhole_scene.path))
+    images = model.sorted_images()[:5]
+    assert len({image.camera_id for image in images}) >= min(2, len(model.cameras))
+    for image in images:
         cam = model.cameras[image.camera_id]
         fx, fy, cx, cy = cam.pinhole()
         s = coords.blender_camera_settings(cam.width, cam.height, fx, fy, cx, cy)
@@ -373,9 +382,132 @@ def test_pure_modules_never_import_torch_or_the_engine():
         sys.meta_path.insert(0, Block())
         sys.path.insert(0, {str(REPO)!r})
         import promptgs_blender, promptgs_blender.colmap, promptgs_blender.coords
-        import promptgs_blender.plyio, promptgs_blender.trainer
+        import promptgs_blender.plyio, promptgs_blender.splats, promptgs_blender.trainer
         assert "bpy" not in sys.modules
         print("ok")
     """)
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.stdout.strip() == "ok", done.stderr
+
+
+# --- the processes of a run ------------------------------------------------------------
+
+def _sleeper(new_session: bool = False, ignore: str = "") -> subprocess.Popen:
+    code = f"import signal, time\nfor s in ({ignore}): signal.signal(s, signal.SIG_IGN)\nwhile True: time.sleep(0.05)\n"
+    return subprocess.Popen([sys.executable, "-c", code], start_new_session=new_session, stdin=subprocess.DEVNULL)
+
+
+@pytest.mark.skipif(os.name != "posix", reason="process groups and /proc or ps: POSIX")
+def test_descendants_and_alive_follow_the_process_tree(tmp_path):
+    parent = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import subprocess, sys, time
+        kids = [subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], start_new_session=True)
+                for _ in range(2)]
+        open({str(tmp_path / 'kids')!r}, "w").write(" ".join(str(k.pid) for k in kids))
+        time.sleep(60)
+    """)])
+    try:
+        deadline = time.time() + 30
+        while not (tmp_path / "kids").is_file() and time.time() < deadline:
+            time.sleep(0.05)
+        kids = {int(pid) for pid in (tmp_path / "kids").read_text().split()}
+        found = dict(trainer.descendants(parent.pid))
+        assert kids <= set(found), (kids, found)  # in their own sessions, still below it
+        assert all(trainer.alive(pid, start) for pid, start in found.items())
+        pid = next(iter(kids))
+        if found[pid]:  # /proc: a start time tells a reused pid apart
+            assert not trainer.alive(pid, str(int(found[pid]) + 1))
+    finally:
+        for pid in trainer.descendants(parent.pid):
+            os.kill(pid[0], 9)
+        parent.kill()
+        parent.wait()
+    assert not trainer.alive(parent.pid)
+
+
+def test_a_trainer_run_gets_the_lifeline_and_releases_it_when_it_ends(tmp_path, monkeypatch):
+    monkeypatch.setenv("FAKE_TRAINER_MODE", "ok")
+    script = tmp_path / "env.py"
+    script.write_text("import os, stat\n"
+                      "print(os.environ.get('PROMPTGS_LIFELINE'), stat.S_ISFIFO(os.fstat(0).st_mode), flush=True)\n")
+    run = trainer.TrainerRun([sys.executable, str(script)], tmp_path / "log")
+    run.start()
+    assert run.wait(30)
+    lines = [e["line"] for e in run.drain() if e["event"] == "output"]
+    assert lines == ["stdin True"]  # asked for, and its stdin is a pipe
+    assert run.process.stdin.closed  # our end, closed once the run ended
+
+
+# --- folder state and set-up -----------------------------------------------------------
+
+def test_a_run_folder_says_what_its_run_is(tmp_path):
+    run = tmp_path / "run"
+    assert trainer.folder_state(run)["status"] == "MISSING"
+    (run / "snapshots").mkdir(parents=True)
+    (run / "cfg.json").write_text("{}")
+    assert trainer.folder_state(run)["status"] == "ERROR"  # before its first checkpoint: no resume
+    for step in (500, 1000):
+        (run / "snapshots" / f"step_{step:06d}.npz").write_bytes(b"")
+    (run / "ckpt.pt").write_bytes(b"")
+    state = trainer.folder_state(run)
+    assert state["status"] == "INTERRUPTED" and state["snapshot_step"] == 1000
+    assert state["last_snapshot"].endswith("step_001000.npz")
+    (run / "point_cloud.ply").write_bytes(b"")
+    (run / "metrics.json").write_text(json.dumps({"psnr": 24.1, "n_gaussians": 1234}))
+    state = trainer.folder_state(run)
+    assert state["status"] == "DONE" and state["result_ply"] == str(run / "point_cloud.ply")
+    assert state["message"] == "Done: PSNR 24.10 dB, 1,234 Gaussians"
+
+
+def _setup_events(capsys) -> list[dict]:
+    return [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+
+
+def test_set_up_refuses_what_cannot_work_in_one_line(tmp_path, capsys):
+    assert trainer.run_setup(tmp_path / "env", "") == 2
+    assert _setup_events(capsys)[-1]["message"].startswith("Choose the engine source")
+    assert trainer.run_setup(tmp_path / "env", str(tmp_path)) == 2
+    assert _setup_events(capsys)[-1]["message"] == f"{tmp_path}: no pyproject.toml (not a PromptGS checkout)"
+    (tmp_path / "promptgs-0.1.0-py3-none-any.whl").write_bytes(b"")
+    (tmp_path / "other.whl").write_bytes(b"")
+    assert trainer.check_source(str(tmp_path / "promptgs-0.1.0-py3-none-any.whl")) == ""
+    assert "not a promptgs wheel" in trainer.check_source(str(tmp_path / "other.whl"))
+    no_compiler = {"PATH": str(tmp_path / "empty"), "CXX": ""}
+    assert trainer.find_compiler(no_compiler) is None
+    assert trainer.run_setup(tmp_path / "env", str(REPO), environ=no_compiler) == 2
+    message = _setup_events(capsys)[-1]["message"]
+    assert message.startswith("No C++ compiler found") and "build-essential" in message, message
+    assert not (tmp_path / "env").exists()
+
+
+def test_set_up_runs_its_stages_and_stops_at_a_failing_one(tmp_path, capsys, monkeypatch):
+    """Each stage is announced, its output passed on line by line; a failing stage ends it
+    with its last line; a made environment is checked with the probe."""
+    stages = [("one", [sys.executable, "-c", "print('first line'); print('second line')"]),
+              ("two", [sys.executable, "-c", "import sys; print('it broke'); sys.exit(4)"]),
+              ("three", [sys.executable, "-c", "print('never')"])]
+    monkeypatch.setattr(trainer, "setup_stages", lambda venv, source, index: stages)
+    monkeypatch.setattr(trainer, "find_compiler", lambda environ=None: "/usr/bin/c++")
+    assert trainer.run_setup(tmp_path / "env", str(REPO)) == 2
+    out = capsys.readouterr().out.splitlines()
+    assert [json.loads(x)["stage"] for x in out if '"setup_stage"' in x] == ["one", "two"]
+    assert "first line" in out and "second line" in out and "never" not in out
+    assert json.loads(out[-1]) | {"time": 0} == {"event": "error", "time": 0,
+                                                 "message": "two failed (exit code 4): it broke"}
+    monkeypatch.setattr(trainer, "setup_stages", lambda venv, source, index: stages[:1])
+    monkeypatch.setattr(trainer, "probe", lambda python: {"version": "0.1.0", "torch": "2.13.0+cpu", "backends": ["cpu"]})
+    assert trainer.run_setup(tmp_path / "env", str(REPO)) == 0
+    done = _setup_events(capsys)[-1]
+    assert done["event"] == "setup_done" and done["python"] == str(trainer.venv_python(tmp_path / "env"))
+
+
+def test_set_up_stages_install_torch_then_the_engine_without_build_isolation(tmp_path):
+    stages = dict(trainer.setup_stages(tmp_path / "env", str(REPO), trainer.CPU_INDEX))
+    python = str(trainer.venv_python(tmp_path / "env"))
+    assert stages["virtual environment"] == [sys.executable, "-m", "venv", str(tmp_path / "env")]
+    assert stages["torch"][:4] == [python, "-m", "pip", "install"] and "torch==2.13.0" in stages["torch"]
+    assert stages["torch"][-2:] == ["--extra-index-url", trainer.CPU_INDEX]
+    assert "--extra-index-url" not in dict(trainer.setup_stages(tmp_path / "env", str(REPO), ""))["torch"]
+    engine = stages["PromptGS engine (compiles the CPU rasterizer)"]
+    assert engine[-2:] == ["--no-build-isolation", str(REPO)]
+    assert list(stages) == ["virtual environment", "build tools", "torch", "PromptGS engine (compiles the CPU rasterizer)"]

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from promptgs_engine.bench.toy_scene import look_at
-from promptgs_engine.compaction import Importance, blending_weights, compact, compaction_step, removal_mask
+from promptgs_engine.compaction import Importance, blending_weights, compact, removal_mask
 from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import Camera
 from promptgs_engine.gaussians import init_from_points
@@ -136,7 +136,7 @@ def test_compact_in_training_keeps_the_drones_in_the_prompt(toy, tmp_path, monke
     # 60 whole-view steps and 15 related ones (focus.run_length); 3DGS's schedule for 60
     # steps (growth until 30) stretched by 75/60.
     assert (trainer.total_steps, trainer.schedule.refine_stop_iter) == (75, 38)
-    assert done["step"] == compaction_step(trainer) == 45  # 60% of the run, after densification stops
+    assert done["step"] == trainer.compaction_at == 45  # 60% of the run, after densification stops
     assert done["removed"] > 0 and done["after"] == done["before"] - done["removed"]
     assert done["protected"] == seen["object"].shape[0] > 0
     # A global cut would have taken some of the drones' Gaussians; every one is still there.
@@ -160,9 +160,9 @@ def test_a_progressive_run_compacts_once_its_whole_views_are_at_full_size(toy, t
     monkeypatch.setattr(focus_module, "MIN_PROGRESSIVE_WIDTH", 64)  # the 128 px toy gets 2x levels
     common = dict(dataset=str(toy), iterations=300, compact=True, checkpoint_every=0)
     pgs = Trainer(TrainConfig(out=str(tmp_path / "p"), strategy="promptgs", prompts=str(toy / "prompts_1.json"), **common), quiet=True)
-    step = compaction_step(pgs)
+    step = pgs.compaction_at
     assert pgs.total_steps == 375 and step > int(0.6 * 375)
     assert step == pgs.focus.full_size_step()
     assert pgs.focus.downscale_at(step - 1) == 2 and pgs.focus.downscale_at(step) == 1
     baseline = Trainer(TrainConfig(out=str(tmp_path / "b"), strategy="3dgs", **common), quiet=True)
-    assert compaction_step(baseline) == int(0.6 * 300)
+    assert baseline.compaction_at == int(0.6 * 300)

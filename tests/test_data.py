@@ -1,4 +1,5 @@
-"""COLMAP scene loading: both shared scenes, undistortion cache, image pyramid, bad input."""
+"""COLMAP scene loading: pinhole and distorted scenes (made by tests/scenes.py, and the real
+ones of ../shared/data when present), undistortion cache, image pyramid, bad input."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from PIL import Image
 from promptgs_engine.data import Camera, Scene, load_colmap_scene
 from promptgs_engine.data.images import DeviceImageCache, ImageCache, preload_images
 from promptgs_engine.errors import DatasetError
+from scenes import SceneFacts
 
 
 def project(cam: Camera, X: np.ndarray) -> np.ndarray:
@@ -49,52 +51,57 @@ def observation_errors(scene: Scene, model_dir: Path, scale: float, n_points: in
     return np.asarray(errs)
 
 
-# ---------------------------------------------------------------- tumbler (binary, SIMPLE_PINHOLE)
+# ---------------------------------------------------------------- pinhole (binary): made, tumbler
 
 
 @pytest.fixture(scope="module")
-def tumbler(shared_data: Path) -> Scene:
-    return load_colmap_scene(shared_data / "tumbler")
+def full(pinhole_scene: SceneFacts) -> Scene:
+    return load_colmap_scene(pinhole_scene.path)
 
 
 @pytest.fixture(scope="module")
-def tumbler4(shared_data: Path) -> Scene:
-    return load_colmap_scene(shared_data / "tumbler", images="images_4")
+def small(pinhole_scene: SceneFacts) -> Scene:
+    return load_colmap_scene(pinhole_scene.path, images=pinhole_scene.small)
 
 
-def test_tumbler_counts_and_split(tumbler: Scene, shared_data: Path) -> None:
-    assert len(tumbler.train_cameras) + len(tumbler.test_cameras) == 77
-    assert len(tumbler.test_cameras) == 10  # indices 0, 8, ..., 72
-    names = sorted(c.name for c in tumbler.cameras)
-    assert [c.name for c in tumbler.test_cameras] == names[::8]
-    assert tumbler.points.shape == (9262, 3) and tumbler.points.dtype == torch.float32
-    assert tumbler.point_colors.shape == (9262, 3)
-    assert 0.0 <= float(tumbler.point_colors.min()) and float(tumbler.point_colors.max()) <= 1.0
-    assert tumbler.source == shared_data / "tumbler"
-    cam = tumbler.train_cameras[0]
-    assert (cam.width, cam.height) == (800, 600)
+def test_counts_and_split(full: Scene, pinhole_scene: SceneFacts) -> None:
+    facts = pinhole_scene
+    assert len(full.train_cameras) + len(full.test_cameras) == facts.n_images
+    assert [c.name for c in full.test_cameras] == list(facts.names[::8])  # indices 0, 8, 16, ...
+    assert sorted(c.name for c in full.cameras) == list(facts.names)
+    assert full.points.shape == (facts.n_points, 3) and full.points.dtype == torch.float32
+    assert full.point_colors.shape == (facts.n_points, 3)
+    assert 0.0 <= float(full.point_colors.min()) and float(full.point_colors.max()) <= 1.0
+    assert full.source == facts.path
+    cam = full.train_cameras[0]
+    assert (cam.width, cam.height) == facts.size
     assert cam.K.dtype == torch.float32 and cam.K.shape == (3, 3)
     assert cam.world_to_camera.dtype == torch.float32 and cam.world_to_camera.shape == (4, 4)
     assert torch.equal(cam.world_to_camera[3], torch.tensor([0.0, 0.0, 0.0, 1.0]))
-    centers = torch.stack([c.center for c in tumbler.train_cameras]).double()
+    centers = torch.stack([c.center for c in full.train_cameras]).double()
     radius = (centers - centers.mean(0)).norm(dim=1).max().item() * 1.1
-    assert tumbler.extent == pytest.approx(radius, rel=1e-5)
+    assert full.extent == pytest.approx(radius, rel=1e-5)
+    for c in full.cameras if facts.poses else ():  # a made scene: the poses and intrinsics it was made with
+        np.testing.assert_allclose(c.world_to_camera.double().numpy(), facts.poses[c.name], atol=1e-6)
+        np.testing.assert_allclose(c.K.double().numpy(), facts.intrinsics[c.name], rtol=1e-6)
 
 
-def test_tumbler_split_options(shared_data: Path) -> None:
-    s = load_colmap_scene(shared_data / "tumbler", test_every=0)
-    assert len(s.train_cameras) == 77 and s.test_cameras == []
-    s = load_colmap_scene(shared_data / "tumbler", test_every=4)
-    assert len(s.test_cameras) == 20 and len(s.train_cameras) == 57
+def test_split_options(pinhole_scene: SceneFacts) -> None:
+    n = pinhole_scene.n_images
+    s = load_colmap_scene(pinhole_scene.path, test_every=0)
+    assert len(s.train_cameras) == n and s.test_cameras == []
+    s = load_colmap_scene(pinhole_scene.path, test_every=4)
+    assert len(s.test_cameras) == len(range(0, n, 4)) and len(s.train_cameras) == n - len(range(0, n, 4))
 
 
-def test_tumbler_points_project_onto_observations(tumbler: Scene, tumbler4: Scene, shared_data: Path) -> None:
-    model = shared_data / "tumbler" / "sparse" / "0"
-    errs = observation_errors(tumbler, model, 1.0)
+def test_points_project_onto_observations(full: Scene, small: Scene, pinhole_scene: SceneFacts) -> None:
+    median, p90 = pinhole_scene.observation_px
+    scale = pinhole_scene.small_size[0] / pinhole_scene.size[0]
+    errs = observation_errors(full, pinhole_scene.model_dir, 1.0)
     assert len(errs) > 500
-    assert np.median(errs) < 1.0 and np.percentile(errs, 90) < 2.0
-    errs4 = observation_errors(tumbler4, model, 0.25)
-    assert np.median(errs4) < 0.25 and np.percentile(errs4, 90) < 0.5
+    assert np.median(errs) < median and np.percentile(errs, 90) < p90
+    errs4 = observation_errors(small, pinhole_scene.model_dir, scale)
+    assert np.median(errs4) < median * scale and np.percentile(errs4, 90) < p90 * scale
 
 
 def test_camera_projects_world_points_to_pixels_and_depth() -> None:
@@ -111,41 +118,44 @@ def test_camera_projects_world_points_to_pixels_and_depth() -> None:
     assert torch.allclose(u2, torch.tensor([57.0])) and torch.allclose(z2, torch.tensor([2.0]))
 
 
-def test_tumbler_images_4_scales_intrinsics(tumbler: Scene, tumbler4: Scene) -> None:
-    for full, small in zip(tumbler.cameras, tumbler4.cameras):
-        assert full.name == small.name
-        assert (small.width, small.height) == (200, 150)
-        assert torch.allclose(small.K[:2], full.K[:2] / 4, rtol=1e-6)
-        assert torch.equal(small.world_to_camera, full.world_to_camera)
-        assert small.image_path.parent.name == "images_4"
+def test_images_4_scales_intrinsics(full: Scene, small: Scene, pinhole_scene: SceneFacts) -> None:
+    assert len(small.cameras) == pinhole_scene.n_images
+    for big, little in zip(full.cameras, small.cameras):
+        assert big.name == little.name
+        assert (little.width, little.height) == pinhole_scene.small_size
+        assert torch.allclose(little.K[:2], big.K[:2] / 4, rtol=1e-6)
+        assert torch.equal(little.world_to_camera, big.world_to_camera)
+        assert little.image_path.parent.name == "images_4"
 
 
-def test_images_load_at_camera_size(tumbler: Scene, tumbler4: Scene) -> None:
-    for cam in (tumbler.test_cameras[0], tumbler4.train_cameras[3]):
+def test_images_load_at_camera_size(full: Scene, small: Scene) -> None:
+    for cam in (full.test_cameras[0], small.train_cameras[3]):
         img = cam.load_image()
         assert img.shape == (cam.height, cam.width, 3) and img.dtype == torch.float32
         assert 0.0 <= float(img.min()) and float(img.max()) <= 1.0 and float(img.std()) > 0.01
 
 
-def test_downscaled_camera_matches_downscaled_image(tumbler4: Scene) -> None:
-    cam = tumbler4.train_cameras[0]
-    small = cam.downscaled(4)  # 150 is not a multiple of 4: 37 rows, bottom 2 rows cropped
-    assert (small.width, small.height) == (50, 37)
-    assert torch.allclose(small.K[:2], cam.K[:2] / 4) and small.K[2, 2] == 1
-    img = small.load_image()
-    assert img.shape == (37, 50, 3)
+def test_downscaled_camera_matches_downscaled_image(small: Scene) -> None:
+    cam = small.train_cameras[0]
+    w, h = cam.width // 4, cam.height // 4
+    assert cam.height % 4 != 0  # both scenes: the last rows are cropped (tumbler 150 -> 37 rows)
+    tiny = cam.downscaled(4)
+    assert (tiny.width, tiny.height) == (w, h)
+    assert torch.allclose(tiny.K[:2], cam.K[:2] / 4) and tiny.K[2, 2] == 1
+    img = tiny.load_image()
+    assert img.shape == (h, w, 3)
     assert torch.equal(img, cam.load_image(4))
-    full = cam.load_image()[: 37 * 4, : 50 * 4]
-    box = full.reshape(37, 4, 50, 4, 3).mean(dim=(1, 3))
+    whole = cam.load_image()[: h * 4, : w * 4]
+    box = whole.reshape(h, 4, w, 4, 3).mean(dim=(1, 3))
     assert (img - box).abs().max() <= 1.0 / 255 + 1e-6
     # a point projects to x/4 in the downscaled camera, and chained downscaling composes
-    X = tumbler4.points[:50].double().numpy()
-    np.testing.assert_allclose(project(small, X), project(cam, X) / 4, rtol=1e-5)
+    X = small.points[:50].double().numpy()
+    np.testing.assert_allclose(project(tiny, X), project(cam, X) / 4, rtol=1e-5)
     assert torch.equal(cam.downscaled(2).downscaled(2).load_image(), img)
 
 
-def test_a_window_of_an_image_is_the_crop_of_the_whole(tumbler4: Scene) -> None:
-    cam = tumbler4.train_cameras[0]
+def test_a_window_of_an_image_is_the_crop_of_the_whole(small: Scene) -> None:
+    cam = small.train_cameras[0]
     full = cam.load_image()
     assert torch.equal(cam.load_image(window=(10, 7, 40, 30)), full[7:37, 10:50])
     assert torch.equal(cam.load_image(2, window=(1, 2, 5, 4)), cam.load_image(2)[2:6, 1:6])
@@ -153,9 +163,9 @@ def test_a_window_of_an_image_is_the_crop_of_the_whole(tumbler4: Scene) -> None:
         cam.load_image(window=(cam.width - 5, 0, 10, 10))
 
 
-def test_image_cache_is_bounded(tumbler4: Scene) -> None:
-    cams = tumbler4.train_cameras[:6]
-    one = 150 * 200 * 3
+def test_image_cache_is_bounded(small: Scene) -> None:
+    cams = small.train_cameras[:6]
+    one = cams[0].width * cams[0].height * 3
     cache = ImageCache(max_bytes=int(2.5 * one))
     for c in cams:
         cache.get(c.image_path, 1)
@@ -173,9 +183,9 @@ def test_the_device_table_converts_every_8_bit_value_as_the_cpu_does() -> None:
     assert torch.equal(table, torch.from_numpy(values.astype(np.float32)).div_(255.0))
 
 
-def test_the_device_cache_is_bounded_and_keeps_the_most_recent(tumbler4: Scene) -> None:
-    cams = tumbler4.train_cameras[:5]
-    one = 150 * 200 * 3
+def test_the_device_cache_is_bounded_and_keeps_the_most_recent(small: Scene) -> None:
+    cams = small.train_cameras[:5]
+    one = cams[0].width * cams[0].height * 3
     cache = DeviceImageCache(max_bytes=int(2.5 * one))
     for c in cams:
         host = c.load_image()  # float; the cache holds what it is given, here the 8-bit copy
@@ -188,8 +198,8 @@ def test_the_device_cache_is_bounded_and_keeps_the_most_recent(tumbler4: Scene) 
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
-def test_an_image_loaded_onto_the_gpu_equals_the_cpu_one_bit_for_bit(tumbler4: Scene) -> None:
-    cam = tumbler4.train_cameras[0]
+def test_an_image_loaded_onto_the_gpu_equals_the_cpu_one_bit_for_bit(small: Scene) -> None:
+    cam = small.train_cameras[0]
     for kwargs in ({}, {"window": (10, 7, 40, 30)}, {"downscale": 2}):
         cpu = cam.load_image(**kwargs)
         gpu = cam.load_image(device="cuda", **kwargs)
@@ -197,8 +207,8 @@ def test_an_image_loaded_onto_the_gpu_equals_the_cpu_one_bit_for_bit(tumbler4: S
         assert torch.equal(gpu.cpu(), cpu), kwargs
 
 
-def test_preload_decodes_every_image_once_when_all_fit(tumbler4: Scene, tmp_path: Path) -> None:
-    cams = tumbler4.train_cameras[:5]
+def test_preload_decodes_every_image_once_when_all_fit(small: Scene, tmp_path: Path) -> None:
+    cams = small.train_cameras[:5]
     items = [(c.image_path, 1, c.width * c.height * 3) for c in cams]
     small = ImageCache(max_bytes=4 * items[0][2])
     assert not preload_images(items, threads=2, cache=small) and len(small) == 0  # would not all fit
@@ -211,22 +221,34 @@ def test_preload_decodes_every_image_once_when_all_fit(tumbler4: Scene, tmp_path
     assert np.array_equal(held, np.asarray(Image.open(cams[3].image_path).convert("RGB")))
 
 
-# ---------------------------------------------------------------- fern (text, SIMPLE_RADIAL)
+# ---------------------------------------------------------------- distorted (text): made, fern
 
 
 @pytest.fixture(scope="module")
-def fern_copy(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return copy_scene(shared_data / "fern", tmp_path_factory.mktemp("fern") / "fern")
+def distorted_copy(distorted_scene: SceneFacts, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return copy_scene(distorted_scene.path, tmp_path_factory.mktemp("distorted") / distorted_scene.name)
 
 
-def test_fern_is_undistorted_and_cached(fern_copy: Path) -> None:
-    scene = load_colmap_scene(fern_copy)
-    cache = fern_copy / ".promptgs_cache" / "undistorted_images"
-    assert len(scene.cameras) == 20 and len(scene.test_cameras) == 3
-    assert scene.points.shape == (10091, 3)
+def change_first_distortion(model_dir: Path) -> None:
+    """Add 0.03 to the last distortion parameter of the first camera in cameras.txt."""
+    txt = model_dir / "cameras.txt"
+    lines = txt.read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line.strip() and not line.startswith("#"))
+    words = lines[first].split()
+    words[-1] = repr(float(words[-1]) + 0.03)
+    lines[first] = " ".join(words)
+    txt.write_text("\n".join(lines) + "\n")
+
+
+def test_distorted_scene_is_undistorted_and_cached(distorted_scene: SceneFacts, distorted_copy: Path) -> None:
+    facts = distorted_scene
+    scene = load_colmap_scene(distorted_copy)
+    cache = distorted_copy / ".promptgs_cache" / "undistorted_images"
+    assert len(scene.cameras) == facts.n_images and len(scene.test_cameras) == len(facts.names[::8])
+    assert scene.points.shape == (facts.n_points, 3)
     cam = scene.cameras[0]
     assert cam.image_path.parent == cache / "images"
-    assert cam.K[0, 1] == 0 and cam.K[0, 0] == pytest.approx(407.5658, rel=1e-4)
+    assert cam.K[0, 1] == 0 and cam.K[0, 0] == pytest.approx(facts.focal, rel=1e-4)
     assert cam.load_image().shape == (cam.height, cam.width, 3)
     with Image.open(cam.image_path) as im:
         assert im.size == (cam.width, cam.height)
@@ -234,24 +256,24 @@ def test_fern_is_undistorted_and_cached(fern_copy: Path) -> None:
     stamp = cache / "stamp.json"
     stamp_mtime = stamp.stat().st_mtime_ns
     img_mtime = cam.image_path.stat().st_mtime_ns
-    again = load_colmap_scene(fern_copy)
+    again = load_colmap_scene(distorted_copy)
     assert stamp.stat().st_mtime_ns == stamp_mtime and cam.image_path.stat().st_mtime_ns == img_mtime
     assert torch.equal(again.cameras[0].K, cam.K)
 
     # a changed source model invalidates the cache
-    txt = fern_copy / "sparse" / "0" / "cameras.txt"
-    txt.write_text(txt.read_text().replace("0.019750463822896944", "0.03"))
-    changed = load_colmap_scene(fern_copy)
+    change_first_distortion(distorted_copy / "sparse" / "0")
+    changed = load_colmap_scene(distorted_copy)
     assert stamp.stat().st_mtime_ns != stamp_mtime
     assert not torch.equal(changed.cameras[0].K, cam.K)
 
 
-def test_fern_undistorted_images_agree_with_distorted_model(shared_data: Path, fern_copy: Path) -> None:
+def test_undistorted_images_agree_with_distorted_model(distorted_scene: SceneFacts, distorted_copy: Path) -> None:
     """A point's colour where the distorted model sees it in the original image equals its
-    colour where our pinhole camera sees it in the undistorted image."""
-    src = shared_data / "fern"
-    scene = load_colmap_scene(src, cache_dir=fern_copy.parent / "cache_b")
-    rec = pycolmap.Reconstruction(str(src / "sparse" / "0"))
+    colour where our pinhole camera sees it in the undistorted image (the first two
+    images: in the made scene one of each of its two distorted cameras)."""
+    src = distorted_scene.path
+    scene = load_colmap_scene(src, cache_dir=distorted_copy.parent / "cache_b")
+    rec = pycolmap.Reconstruction(str(distorted_scene.model_dir))
     X = np.stack([p.xyz for p in rec.points3D.values()])
     for cam in scene.cameras[:2]:
         im = rec.find_image_with_name(cam.name)
@@ -276,15 +298,17 @@ def test_fern_undistorted_images_agree_with_distorted_model(shared_data: Path, f
         assert diff < 0.06 and diff < 0.5 * shifted
 
 
-def test_fern_smaller_images_are_rescaled_then_undistorted(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "fern", tmp_path / "fern")
+def test_smaller_images_are_rescaled_then_undistorted(distorted_scene: SceneFacts, tmp_path: Path) -> None:
+    src = distorted_scene.path
+    ds = copy_scene(src, tmp_path / distorted_scene.name)
     (ds / "images_2").mkdir()
-    for p in sorted((shared_data / "fern" / "images").iterdir()):
+    for p in sorted((src / "images").iterdir()):
         with Image.open(p) as im:
             im.convert("RGB").reduce(2).save(ds / "images_2" / p.name)
     full = load_colmap_scene(ds)
     half = load_colmap_scene(ds, images="images_2")
     assert half.cameras[0].image_path.parent == ds / ".promptgs_cache" / "undistorted_images_2" / "images"
+    assert len(half.cameras) == distorted_scene.n_images
     for a, b in zip(full.cameras, half.cameras):
         assert abs(b.width - a.width / 2) <= 2 and abs(b.height - a.height / 2) <= 2
         assert float(b.K[0, 0]) == pytest.approx(float(a.K[0, 0]) / 2, rel=1e-3)
@@ -307,66 +331,107 @@ def test_missing_dataset_folder(tmp_path: Path) -> None:
     expect_error(tmp_path / "nope", "nope", "not found")
 
 
-def test_no_model(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "tumbler", tmp_path / "t")
+def test_no_model(pinhole_scene: SceneFacts, tmp_path: Path) -> None:
+    ds = copy_scene(pinhole_scene.path, tmp_path / "t")
     shutil.rmtree(ds / "sparse")
     expect_error(ds, "no COLMAP model")
 
 
-def test_model_directly_in_sparse_is_accepted(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "tumbler", tmp_path / "t")
+def test_model_directly_in_sparse_is_accepted(pinhole_scene: SceneFacts, tmp_path: Path) -> None:
+    ds = copy_scene(pinhole_scene.path, tmp_path / "t")
     for f in (ds / "sparse" / "0").iterdir():
         f.rename(ds / "sparse" / f.name)
     (ds / "sparse" / "0").rmdir()
-    assert len(load_colmap_scene(ds).cameras) == 77
+    assert len(load_colmap_scene(ds).cameras) == pinhole_scene.n_images
 
 
-def test_images_folder_missing(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "tumbler", tmp_path / "t")
+def test_images_folder_missing(pinhole_scene: SceneFacts, tmp_path: Path) -> None:
+    ds = copy_scene(pinhole_scene.path, tmp_path / "t")
     expect_error(ds, "images_4", "images folder not found", images="images_4")
 
 
-def test_image_missing_on_disk(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "tumbler", tmp_path / "t", images=())
+def test_image_missing_on_disk(pinhole_scene: SceneFacts, tmp_path: Path) -> None:
+    gone = pinhole_scene.names[3]
+    ds = copy_scene(pinhole_scene.path, tmp_path / "t", images=())
     (ds / "images").mkdir()
-    for p in (shared_data / "tumbler" / "images").iterdir():
-        if p.name != "12.jpg":
+    for p in (pinhole_scene.path / "images").iterdir():
+        if p.name != gone:
             (ds / "images" / p.name).symlink_to(p)
-    expect_error(ds, "12.jpg", "missing")
+    expect_error(ds, gone, "missing")
 
 
-def test_unreadable_image(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "tumbler", tmp_path / "t", images=())
+def test_unreadable_image(pinhole_scene: SceneFacts, tmp_path: Path) -> None:
+    bad = pinhole_scene.names[1]
+    ds = copy_scene(pinhole_scene.path, tmp_path / "t", images=())
     (ds / "images").mkdir()
-    for p in (shared_data / "tumbler" / "images").iterdir():
+    for p in (pinhole_scene.path / "images").iterdir():
         (ds / "images" / p.name).symlink_to(p)
-    (ds / "images" / "3.jpg").unlink()
-    (ds / "images" / "3.jpg").write_bytes(b"not a jpeg at all")
-    expect_error(ds, "3.jpg", "unreadable")
+    (ds / "images" / bad).unlink()
+    (ds / "images" / bad).write_bytes(b"not a jpeg at all")
+    expect_error(ds, bad, "unreadable")
 
 
-def test_model_without_images(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "fern", tmp_path / "f")
-    lines = (ds / "sparse" / "0" / "images.txt").read_text().splitlines()
-    (ds / "sparse" / "0" / "images.txt").write_text("\n".join(l for l in lines if l.startswith("#")) + "\n")
+def test_model_without_images(distorted_scene: SceneFacts, tmp_path: Path) -> None:
+    ds = copy_scene(distorted_scene.path, tmp_path / "f")
+    model = ds / "sparse" / "0"
+    lines = (model / "images.txt").read_text().splitlines()
+    (model / "images.txt").write_text("\n".join(l for l in lines if l.startswith("#")) + "\n")
+    # the points' tracks and the frames name the images: they go too (fern's model has neither)
+    points = [l.split()[:8] for l in (model / "points3D.txt").read_text().splitlines() if not l.startswith("#")]
+    (model / "points3D.txt").write_text("".join(" ".join(p) + " \n" for p in points))
+    for name in ("frames.txt", "rigs.txt"):
+        (model / name).unlink(missing_ok=True)
     expect_error(ds, "no registered images")
 
 
-def test_zero_points(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "fern", tmp_path / "f")
+def _drop_first_image_text(model: Path) -> int:
+    """Remove the first image of a text model from images.txt; returns its id."""
+    lines = (model / "images.txt").read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    image_id = int(lines[first].split()[0])
+    (model / "images.txt").write_text("\n".join(lines[:first] + lines[first + 2:]) + "\n")
+    return image_id
+
+
+def _drop_first_image_binary(model: Path) -> int:
+    """Remove the first image record of images.bin (COLMAP's layout); returns its id."""
+    data = (model / "images.bin").read_bytes()
+    count, image_id = struct.unpack_from("<QI", data, 0)
+    name_end = data.index(b"\0", 8 + 4 + 7 * 8 + 4) + 1  # id, qvec and tvec, camera id, then the name
+    n_points2d = struct.unpack_from("<Q", data, name_end)[0]
+    (model / "images.bin").write_bytes(struct.pack("<Q", count - 1) + data[name_end + 8 + 24 * n_points2d:])
+    return image_id
+
+
+@pytest.mark.parametrize("kind", ["distorted", "pinhole"])  # text, binary
+def test_tracks_naming_a_missing_image_name_the_model(made_scenes: dict, kind: str, tmp_path: Path) -> None:
+    """A model whose points' tracks name an image it does not list (an image removed by
+    hand): one line naming the model folder and the image, not pycolmap's IndexError."""
+    facts = made_scenes[kind]
+    ds = copy_scene(facts.path, tmp_path / kind)
+    model = ds / "sparse" / "0"
+    for name in ("frames", "rigs"):  # only the tracks name the image then (a legacy model)
+        for f in model.glob(f"{name}.*"):
+            f.unlink()
+    image_id = (_drop_first_image_text if facts.form == "text" else _drop_first_image_binary)(model)
+    expect_error(ds, str(model), "cannot read the COLMAP model", f"Image with ID {image_id} does not exist")
+
+
+def test_zero_points(distorted_scene: SceneFacts, tmp_path: Path) -> None:
+    ds = copy_scene(distorted_scene.path, tmp_path / "f")
     (ds / "sparse" / "0" / "points3D.txt").write_text("# no points\n")
     expect_error(ds, "no SfM points")
 
 
-def test_unknown_camera_model_text(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "fern", tmp_path / "f")
+def test_unknown_camera_model_text(distorted_scene: SceneFacts, tmp_path: Path) -> None:
+    ds = copy_scene(distorted_scene.path, tmp_path / "f")
     txt = ds / "sparse" / "0" / "cameras.txt"
-    txt.write_text(txt.read_text().replace("SIMPLE_RADIAL", "WOBBLY_LENS"))
+    txt.write_text(txt.read_text().replace(distorted_scene.models[1], "WOBBLY_LENS"))
     expect_error(ds, "camera 1", "WOBBLY_LENS")
 
 
-def test_unknown_camera_model_binary(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "tumbler", tmp_path / "t")
+def test_unknown_camera_model_binary(pinhole_scene: SceneFacts, tmp_path: Path) -> None:
+    ds = copy_scene(pinhole_scene.path, tmp_path / "t")
     path = ds / "sparse" / "0" / "cameras.bin"
     data = bytearray(path.read_bytes())
     cam_id = struct.unpack_from("<I", data, 8)[0]
@@ -375,11 +440,11 @@ def test_unknown_camera_model_binary(shared_data: Path, tmp_path: Path) -> None:
     expect_error(ds, f"camera {cam_id}", "99")
 
 
-def test_unsupported_camera_model(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "fern", tmp_path / "f")
+def test_unsupported_camera_model(distorted_scene: SceneFacts, tmp_path: Path) -> None:
+    ds = copy_scene(distorted_scene.path, tmp_path / "f")
     model = ds / "sparse" / "0"
     rec = pycolmap.Reconstruction(str(model))
-    cam = pycolmap.Camera.create_from_model_name(1, "EQUIRECTANGULAR", 1.0, 504, 378)
+    cam = pycolmap.Camera.create_from_model_name(1, "EQUIRECTANGULAR", 1.0, *distorted_scene.size)
     rec.cameras[1].model = cam.model
     rec.cameras[1].params = cam.params
     for f in model.iterdir():
@@ -388,32 +453,35 @@ def test_unsupported_camera_model(shared_data: Path, tmp_path: Path) -> None:
     expect_error(ds, "camera 1", "EQUIRECTANGULAR")
 
 
-def test_image_with_other_aspect_ratio(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "tumbler", tmp_path / "t", images=())
+def test_image_with_other_aspect_ratio(pinhole_scene: SceneFacts, tmp_path: Path) -> None:
+    turned = pinhole_scene.names[5]
+    ds = copy_scene(pinhole_scene.path, tmp_path / "t", images=())
     (ds / "images").mkdir()
-    for p in (shared_data / "tumbler" / "images_4").iterdir():
+    for p in (pinhole_scene.path / pinhole_scene.small).iterdir():
         (ds / "images" / p.name).symlink_to(p)
-    (ds / "images" / "5.jpg").unlink()
-    Image.new("RGB", (150, 200)).save(ds / "images" / "5.jpg")
-    expect_error(ds, "5.jpg", "aspect ratio")
+    (ds / "images" / turned).unlink()
+    Image.new("RGB", pinhole_scene.small_size[::-1]).save(ds / "images" / turned)  # portrait
+    expect_error(ds, turned, "aspect ratio")
 
 
-def test_truncated_image_fails_when_loaded(shared_data: Path, tmp_path: Path) -> None:
-    ds = copy_scene(shared_data / "tumbler", tmp_path / "t", images=())
+def test_truncated_image_fails_when_loaded(pinhole_scene: SceneFacts, tmp_path: Path) -> None:
+    cut = pinhole_scene.names[0]
+    small = pinhole_scene.path / pinhole_scene.small
+    ds = copy_scene(pinhole_scene.path, tmp_path / "t", images=())
     (ds / "images").mkdir()
-    for p in (shared_data / "tumbler" / "images_4").iterdir():
+    for p in small.iterdir():
         (ds / "images" / p.name).symlink_to(p)
-    (ds / "images" / "1.jpg").unlink()
-    data = (shared_data / "tumbler" / "images_4" / "1.jpg").read_bytes()
-    (ds / "images" / "1.jpg").write_bytes(data[: len(data) // 2])  # header intact, pixels cut
+    (ds / "images" / cut).unlink()
+    data = (small / cut).read_bytes()
+    (ds / "images" / cut).write_bytes(data[: len(data) // 2])  # header intact, pixels cut
     scene = load_colmap_scene(ds)
-    cam = next(c for c in scene.cameras if c.name == "1.jpg")
-    with pytest.raises(DatasetError, match="1.jpg: unreadable image"):
+    cam = next(c for c in scene.cameras if c.name == cut)
+    with pytest.raises(DatasetError, match=f"{cut}: unreadable image"):
         cam.load_image()
 
 
-def test_cache_dir_from_environment(shared_data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    ds = copy_scene(shared_data / "fern", tmp_path / "fern")
+def test_cache_dir_from_environment(distorted_scene: SceneFacts, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    ds = copy_scene(distorted_scene.path, tmp_path / distorted_scene.name)
     monkeypatch.setenv("PROMPTGS_CACHE_DIR", str(tmp_path / "cache"))
     scene = load_colmap_scene(ds)
     assert (tmp_path / "cache") in scene.cameras[0].image_path.parents

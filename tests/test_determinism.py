@@ -7,6 +7,7 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from promptgs_engine import run as run_module
 from promptgs_engine import train
 from promptgs_engine.config import TrainConfig
 
@@ -49,7 +50,9 @@ def test_training_settles_mkl_before_any_math(toy, tmp_path, monkeypatch):
     train.Trainer(cfg, quiet=True)
     assert calls[:2] == ["settled", "scene"]
     calls.clear()
-    train.run_training(TrainConfig(dataset=str(toy), out=str(tmp_path / "cli"), iterations=2, checkpoint_every=0), quiet=True)
+    monkeypatch.setattr(run_module, "settle_mkl", lambda: calls.append("settled"))
+    monkeypatch.setattr(run_module, "load_colmap_scene", _recording(run_module.load_colmap_scene, calls, "scene"))
+    run_module.run_training(TrainConfig(dataset=str(toy), out=str(tmp_path / "cli"), iterations=2, checkpoint_every=0), quiet=True)
     assert calls[:2] == ["settled", "scene"]
 
 

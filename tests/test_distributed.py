@@ -219,7 +219,7 @@ def test_promptgs_trains_distributed_like_one_process(toy, tmp_path):
     # Steps of three views (a single view and a related pair) split 2 + 1 and still add
     # in the one process's order: equal bit for bit, error field and scores included.
     _assert_same_params(rank0, dict(one.params))
-    assert one.batched.entry > one.total_steps  # multiview entries counted as their views
+    assert one.entry > one.total_steps  # multiview entries counted as their views
 
 
 def _torchrun_env_of_one(monkeypatch) -> None:
@@ -240,7 +240,7 @@ def test_world_size_one_is_the_single_process_trainer(toy, tmp_path, monkeypatch
         ranked = _train_in_process(cfg, dist=ctx)
     finally:
         ctx.close()
-    assert ranked.batched is None and ranked.batch_size == 1
+    assert not ranked.batched and ranked.batch_size == 1
     plain = _train_in_process(_config(toy, tmp_path / "plain", iterations=60))
     _assert_same_params(dict(ranked.params), dict(plain.params))
 
@@ -392,6 +392,6 @@ def test_world_size_one_with_nccl_is_the_single_process_trainer(toy, tmp_path, m
     finally:
         ctx.close()
     plain = _train_in_process(_config(toy, tmp_path / "plain", iterations=8, backend="cuda"))
-    assert ranked.batched is None and batched.total_steps == 4
+    assert not ranked.batched and batched.total_steps == 4
     for key, value in plain.params.items():
         _assert_equal_up_to_atomics(ranked.params[key], value, key)

@@ -129,7 +129,8 @@ def test_reference_edges_are_kept_per_view_and_per_crop_window():
     """The per-view loss's ground-truth edges, kept between steps, are those `edge_losses`
     computes; two crops of one view at the same size but different windows each get
     their own, and a new reference is computed, not the old one returned."""
-    from promptgs_engine.focus import ReferenceEdges, TrainView
+    from promptgs_engine.focus import ReferenceEdges
+    from promptgs_engine.views import TrainView
     from promptgs_engine.losses import edge_losses, edge_losses_to
 
     g = torch.Generator().manual_seed(0)

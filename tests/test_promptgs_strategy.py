@@ -525,7 +525,7 @@ def test_resampling_never_runs_right_after_an_opacity_reset():
     for iterations in (600, 1000, 3000, 30_000):
         sched = DefaultSchedule.for_iterations(iterations)
         focus = PromptFocus.__new__(PromptFocus)
-        focus.trainer = SimpleNamespace(schedule=sched)
+        focus.growth_schedule = sched
         focus.resample_every = max(2 * sched.refine_every, 20)
         steps = [s for s in range(iterations) if focus.is_resample_step(s)]
         assert len(steps) >= 3, iterations

@@ -52,7 +52,7 @@ def test_progressive_resolution_levels(toy, tmp_path, monkeypatch):
     # While densification runs (steps 5 to 150), every second single-view step is at full
     # size, and from the middle of that window (step 77) every one: the strategy's growth
     # statistics come from those. The strategy learns each step's downscale (1 at full size).
-    sched = focus.trainer.schedule
+    sched = focus.growth_schedule
     assert (sched.refine_start_iter, sched.refine_stop_iter) == (5, 150)
     assert focus.every_single_view_step() == 77
     cases = ((1, "random_multiview", 2.0), (2, "single", 1.0), (3, "single", 2.0), (73, "single", 2.0), (82, "single", 1.0),
@@ -103,7 +103,7 @@ def test_screen_filter_per_step_and_in_evaluation(toy, tmp_path, monkeypatch):
     renders with it."""
     import promptgs_engine.evaluation as evaluation
     import promptgs_engine.train as train
-    from promptgs_engine.train import run_training
+    from promptgs_engine.run import run_training
 
     used: list[tuple[int, float]] = []
 
@@ -144,7 +144,7 @@ def test_antialiased_filter_in_training_and_evaluation(toy, tmp_path, monkeypatc
     evaluation antialiased; cfg.json records it, and an old run folder reads as classic."""
     import promptgs_engine.evaluation as evaluation
     import promptgs_engine.train as train
-    from promptgs_engine.train import run_training
+    from promptgs_engine.run import run_training
 
     used: list[tuple[str, str]] = []
 
@@ -234,7 +234,7 @@ def test_the_centre_prompt_takes_one_view_a_related_step_and_a_drawn_box_two(toy
 
     def crops_per_region() -> dict[int, set[int]]:
         out: dict[int, set[int]] = {}
-        for entry in range(focus.trainer.total_steps):
+        for entry in range(focus.total_steps):
             batch = focus.schedule.batch(entry)
             if batch.kind == "related_multiview":
                 views = focus.plan(entry)
@@ -261,7 +261,7 @@ def test_the_centre_prompts_crops_rotate_over_every_view_that_sees_it(toy, tmp_p
 
     def cropped(region: int) -> set[int]:
         out: set[int] = set()
-        for entry in range(focus.trainer.total_steps):
+        for entry in range(focus.total_steps):
             batch = focus.schedule.batch(entry)
             if batch.kind == "related_multiview" and batch.region == region:
                 out.update(batch.views)
@@ -283,7 +283,8 @@ def test_resampling_votes_for_fainter_errors_in_a_drawn_box_than_in_boxes_the_ru
 
     cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / "run"), iterations=80, strategy="promptgs",
                       prompts=str(toy / "prompts_1.json"), center_prompt=True, checkpoint_every=0)
-    focus = Trainer(cfg, quiet=True).focus
+    trainer = Trainer(cfg, quiet=True)
+    focus = trainer.focus
     drawn = focus.prompts[0]
     proposed = PromptBox(center=drawn.center, size=tuple(0.5 * v for v in drawn.size))
     focus.set_prompts(focus.prompts + [proposed])
@@ -294,6 +295,6 @@ def test_resampling_votes_for_fainter_errors_in_a_drawn_box_than_in_boxes_the_ru
         return CarvedPoints(torch.zeros(0, 3), torch.zeros(0, 3), 0.1)
 
     monkeypatch.setattr(focus_module, "carve_prompt", carve)
-    focus.resample(step=30)
+    focus.resample(step=30, model=trainer.live_model(30))
     assert asked == {0: DRAWN_CARVE_ERROR_THRESHOLD, 1: CARVE_ERROR_THRESHOLD, 2: CARVE_ERROR_THRESHOLD}
     assert DRAWN_CARVE_ERROR_THRESHOLD < CARVE_ERROR_THRESHOLD

@@ -286,11 +286,11 @@ def test_the_trainer_seeds_a_gaussian_at_each_trained_proposal():
     strategy = PromptGSStrategy(refine_start_iter=0, refine_stop_iter=1000, refine_every=100, reset_every=1000)
     state = strategy.initialize_state(scene_scale=1.0)
     strategy._ensure_state(params, state)
-    trainer = SimpleNamespace(params=params, optimizers=optimizers, strategy=strategy, strategy_state=state)
+    model = SimpleNamespace(params=params, optimizers=optimizers, state=state)
     points, colours, pixels = [(1.0, 2.0, 3.0), (-1.0, 0.5, 2.0)], [(0.9, 0.1, 0.1), (0.1, 0.1, 0.8)], [0.02, 0.05]
     proposals = [Proposal(PromptBox(p, (0.2, 0.2, 0.2)), 0.8, p, [], 20, 18, 0.5, 0.1, c, px)
                  for p, c, px in zip(points, colours, pixels)]
-    assert PromptFocus.seed_proposals(SimpleNamespace(trainer=trainer), 150, proposals) == 2
+    assert PromptFocus.seed_proposals(SimpleNamespace(strategy=strategy), 150, model, proposals) == 2
     assert params["means"].shape[0] == 6
     assert torch.allclose(params["means"][4:].detach(), torch.tensor(points))
     assert torch.allclose(sh_to_rgb(params["sh0"][4:, 0].detach()), torch.tensor(colours), atol=1e-5)
@@ -374,15 +374,14 @@ def test_the_trainers_second_round_seeds_an_object_inside_a_group_prompt_of_the_
     monkeypatch.setattr(propose_module, "params_renderer", lambda *a, **k: None)
     monkeypatch.setattr(propose_module, "propose_views", lambda draw, cams, points=None: ProposalSet(next(rounds), [], {}, {"v": 1}))
     monkeypatch.setattr(propose_module, "visible_boxes", lambda boxes, cams: list(boxes))
-    trainer = SimpleNamespace(
-        params=None, backend="cpu", screen_filter=0.1, cfg=SimpleNamespace(rasterize_mode="classic", dataset="d"),
-        active_sh_degree=lambda step: 0, scene=SimpleNamespace(points=torch.zeros(0, 3)),
-        dist=SimpleNamespace(is_writer=True), out=tmp_path, schedule=SimpleNamespace(refine_start_iter=0, refine_stop_iter=300, reset_every=100),
+    proposer = propose_module.TrainingProposer(
+        [SimpleNamespace(width=64, height=48)], torch.zeros(0, 3), propose_module.proposal_steps(0, 300, 100),
+        run_dir=tmp_path, dataset="d", backend="cpu", screen_filter=0.1, rasterize_mode="classic",
     )
-    proposer = propose_module.TrainingProposer(trainer, [SimpleNamespace(width=64, height=48)])
-    groups = proposer.run(150, [])
+    assert proposer.steps == [150, 250]
+    groups = proposer.run(150, [], params=None, sh_degree=0)
     assert len(groups) == 1 and [p.point for p in proposer.trained] == [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0)]
-    assert proposer.run(250, groups) == []  # no new group: both points lie in the first one
+    assert proposer.run(250, groups, params=None, sh_degree=0) == []  # no new group: both points lie in the first one
     assert [p.point for p in proposer.trained] == [(0.5, 0.05, 0.0)]  # but the missed object is seeded
 
 

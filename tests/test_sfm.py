@@ -20,6 +20,7 @@ from promptgs_engine.sfm.compare import camera_centres, compare_centres, umeyama
 from promptgs_engine.sfm.inputs import natural_key
 from promptgs_engine.sfm.pairs import choose_matcher, exhaustive_pairs, sequential_pairs
 from promptgs_engine.sfm.video import extract_frames, sharpness
+from scenes import subset_of_model
 
 av = pytest.importorskip("av")
 
@@ -324,69 +325,50 @@ def test_too_few_registered_says_how_many_and_what_to_try(box_sfm, tmp_path, cap
     assert (out / "colmap" / "database.db").is_file() and not (out / "sparse").exists()
 
 
-# --- the tumbler photos at 200x150 -----------------------------------------------------
+# --- photos of the made pinhole scene (tests/scenes.py) ---------------------------------
 
 
 @pytest.fixture(scope="module")
-def tumbler_sfm(shared_data, tmp_path_factory) -> tuple[Path, dict]:
-    out = tmp_path_factory.mktemp("tumbler") / "sfm"
-    # One thread: the same model every run (with every core the camera centres' largest
-    # error moved between 3.4% and 6.2% of the extent over four runs, 12.8% under load).
-    assert cli_main(["sfm", str(shared_data / "tumbler" / "images_4"), "--out", str(out), "--quiet", "--min-registered", "0.3",
-                     "--threads", "1"]) == 0
-    return out, json.loads((out / "sfm_summary.json").read_text())
+def photos_sfm(made_scenes, tmp_path_factory) -> tuple[Path, dict, tuple[str, ...]]:
+    """`promptgs sfm` of the made scene's views through its first camera (every second view)."""
+    facts = made_scenes["pinhole"]
+    names = facts.names[::2]
+    assert len({tuple(facts.intrinsics[n].ravel()) for n in names}) == 1  # one camera took them all
+    photos = tmp_path_factory.mktemp("photos") / "images"
+    photos.mkdir()
+    for name in names:
+        (photos / name).symlink_to(facts.path / "images" / name)
+    out = photos.parent / "sfm"
+    assert cli_main(["sfm", str(photos), "--out", str(out), "--quiet", "--threads", "1"]) == 0
+    return out, json.loads((out / "sfm_summary.json").read_text()), names
 
 
-def test_tumbler_thumbnails_register_and_align(shared_data, tumbler_sfm):
-    """At 200x150 incremental mapping ties 57 of tumbler's 77 photos together (with the
-    thumbnail settings; COLMAP's defaults 21): a jump to top-down views leaves one pair
-    with 19 inliers between the two halves. `--mapper auto` then runs the global mapper,
-    which registers 75 (97%). The cameras match the given model's up to a similarity
-    (measured: median 4.2%, nine in ten under 8.2%, all under 13.7% of the extent; the 2%
-    asked for is not met, docs/sfm.md), and agree with the incremental model's where both
-    register (median 1.0%)."""
-    out, summary = tumbler_sfm
-    assert summary["images_given"] == 77 and summary["matcher"] == "exhaustive" and summary["thumbnail_settings"]
-    assert summary["mapper"] == "global" and summary["mappers_tried"]["incremental"] < 70
-    assert summary["images_registered"] >= 70  # 90% of 77
-    report = compare_centres(camera_centres(out / "sparse" / "0"), camera_centres(shared_data / "tumbler" / "sparse" / "0"))
-    assert report["common"] == summary["images_registered"]
-    errors = np.array(list(report["per_image"].values()))
-    assert report["median_error"] < 0.05 and np.percentile(errors, 90) < 0.10 and report["max_error"] < 0.16, report
-    # Where the incremental mapper's largest model registers the same photos, the two agree.
-    models = [camera_centres(d) for d in sorted((out / "colmap" / "models").iterdir())]
-    largest = max(models, key=len)
-    assert len(largest) == summary["mappers_tried"]["incremental"]
-    agreement = compare_centres(camera_centres(out / "sparse" / "0"), largest)
-    assert agreement["common"] == len(largest) and agreement["median_error"] < 0.02, agreement
-
-
-def _subset_of_given_model(shared_data: Path, names: set[str], folder: Path) -> Path:
-    """The given tumbler model restricted to `names`, with images_4 as its images."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(str(shared_data / "tumbler" / "sparse" / "0"))
-    for image_id in list(rec.reg_image_ids()):
-        image = rec.images[image_id]
-        if image.name not in names:
-            rec.deregister_frame(image.frame_id)
-    (folder / "sparse" / "0").mkdir(parents=True)
-    rec.write(str(folder / "sparse" / "0"))
-    (folder / "images").symlink_to(shared_data / "tumbler" / "images_4")
-    return folder
+def test_photos_register_where_they_were_taken(made_scenes, photos_sfm):
+    """Twelve photos of one camera: all register, the camera centres are the ones the scene
+    was made with up to a similarity (measured: median 0.15%, all under 0.24% of the
+    extent), and the focal length is the camera's."""
+    facts = made_scenes["pinhole"]
+    out, summary, names = photos_sfm
+    assert summary["status"] == "ok" and summary["kind"] == "images" and summary["matcher"] == "exhaustive"
+    assert summary["images_given"] == summary["images_registered"] == len(names) == 12
+    truth = {name: -pose[:3, :3].T @ pose[:3, 3] for name, pose in facts.poses.items() if name in names}
+    report = compare_centres(camera_centres(out / "sparse" / "0"), truth)
+    assert report["common"] == 12 and report["median_error"] < 0.005 and report["max_error"] < 0.01, report
+    scene = load_colmap_scene(out)
+    true_focal = facts.intrinsics[names[0]][0, 0]
+    assert all(c.K[0, 0] == pytest.approx(true_focal, rel=0.005) for c in scene.cameras)
 
 
 @pytest.mark.slow
-def test_training_on_the_sfm_model_matches_the_given_model(shared_data, tumbler_sfm, tmp_path):
-    """Same images, same steps: the PSNR on the held-out views is no more than 0.5 dB below
-    the given model's (measured on the global mapper's 75 photos, seeds 0-4: +0.95, +0.95,
-    −0.23, +0.25, −0.10 dB, docs/sfm.md; a short training's spread is large both ways)."""
+def test_training_on_the_sfm_model_of_photos_matches_the_true_model(made_scenes, photos_sfm, tmp_path):
+    """Same photos, same steps: the PSNR on the held-out views is no more than 0.5 dB below
+    that of the model the scene was made with."""
     from promptgs_engine.config import TrainConfig
-    from promptgs_engine.train import run_training
+    from promptgs_engine.run import run_training
 
-    out, summary = tumbler_sfm
-    names = set(camera_centres(out / "sparse" / "0"))
-    given = _subset_of_given_model(shared_data, names, tmp_path / "given")
+    facts = made_scenes["pinhole"]
+    out, _, names = photos_sfm
+    given = subset_of_model(facts.model_dir, facts.path / "images", set(names), tmp_path / "given")
     psnr = {}
     for label, dataset in (("sfm", out), ("given", given)):
         cfg = TrainConfig(dataset=str(dataset), out=str(tmp_path / f"run_{label}"), iterations=300, checkpoint_every=0, sh_degree=1)

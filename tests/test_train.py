@@ -1,4 +1,4 @@
-"""The trainer and the CLI end to end, on the real tumbler scene and a small toy scene."""
+"""The trainer and the CLI end to end, on the pinhole scenes (tests/scenes.py) and a small toy scene."""
 
 import json
 import math
@@ -15,12 +15,14 @@ from promptgs_engine.config import TrainConfig
 from promptgs_engine.data import load_colmap_scene
 from promptgs_engine.errors import PromptGSError, TrainingError
 from promptgs_engine.evaluation import evaluate
-from promptgs_engine.train import Trainer, run_training
+from promptgs_engine.run import run_training
+from promptgs_engine.train import Trainer
 
 
-def test_training_raises_test_psnr_on_tumbler(shared_data, tmp_path):
-    scene = load_colmap_scene(shared_data / "tumbler", images="images_4")
-    cfg = TrainConfig(dataset=str(shared_data / "tumbler"), out=str(tmp_path / "run"), images="images_4", iterations=200, checkpoint_every=0)
+def test_training_raises_test_psnr(pinhole_scene, tmp_path):
+    scene = load_colmap_scene(pinhole_scene.path, images=pinhole_scene.small)
+    cfg = TrainConfig(dataset=str(pinhole_scene.path), out=str(tmp_path / "run"), images=pinhole_scene.small, iterations=200,
+                      checkpoint_every=0)
     trainer = Trainer(cfg, scene=scene, quiet=True)
     before = evaluate(trainer.params, scene.test_cameras[:4], quiet=True)["psnr"]
     trainer.out.mkdir()
@@ -66,6 +68,7 @@ def test_a_far_sky_shell_starts_beside_the_sfm_points_unless_turned_off(toy, tmp
     with_sky = Trainer(TrainConfig(dataset=str(toy), out=str(tmp_path / "a")), scene=scene, quiet=True)
     assert with_sky.n_sky_points > 0
     assert with_sky.n_gaussians == n_sfm + with_sky.n_sky_points
+    assert with_sky.run_summary()["initial_gaussians"] == with_sky.n_gaussians  # train.json
     # The shell lies outside every SfM point, seen from the cameras' centre.
     centre = torch.stack([c.center for c in scene.train_cameras]).mean(dim=0)
     shell = with_sky.params["means"][n_sfm:].detach().cpu()  # on the GPU where "auto" picks it

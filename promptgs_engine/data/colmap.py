@@ -78,10 +78,19 @@ def _unknown_camera_model(model_dir: Path) -> str | None:
     return None
 
 
+def _first_line(e: Exception) -> str:
+    """pycolmap's message of `e`, its first line without the source location prefix."""
+    text = str(e).strip()
+    return re.sub(r"^\[[^\]]*\]\s*", "", text.splitlines()[0]) if text else type(e).__name__
+
+
 def read_model(model_dir: Path) -> "pycolmap.Reconstruction":
     """Read a COLMAP model (binary preferred, else text); DatasetError on failure."""
     try:
         return pycolmap.Reconstruction(str(model_dir))
+    except IndexError as e:  # a point's track, an image or a frame names an id the model lacks
+        raise DatasetError(f"{model_dir}: cannot read the COLMAP model (it names what it does not hold: "
+                           f"{_first_line(e)})") from None
     except (ValueError, RuntimeError) as e:
         try:
             unknown = _unknown_camera_model(model_dir)
@@ -89,8 +98,7 @@ def read_model(model_dir: Path) -> "pycolmap.Reconstruction":
             unknown = None
         if unknown:
             raise DatasetError(unknown) from None
-        first = re.sub(r"^\[[^\]]*\]\s*", "", str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__)
-        raise DatasetError(f"{model_dir}: cannot read the COLMAP model ({first})") from None
+        raise DatasetError(f"{model_dir}: cannot read the COLMAP model ({_first_line(e)})") from None
 
 
 def _cam_from_world_matrix(image: "pycolmap.Image") -> np.ndarray:

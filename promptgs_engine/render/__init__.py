@@ -12,6 +12,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
+from ..errors import PromptGSError
 from .projection import EPS2D, camera_centers, filter_compensation, project_gaussians
 from .sh import sh_to_color
 
@@ -20,23 +21,41 @@ RASTERIZE_MODES = ("classic", "antialiased")
 BACKENDS = ("auto", "cpu", "cuda")
 
 
-class RenderBackendError(RuntimeError):
-    """The requested rendering backend cannot run here (no CUDA, extension not built)."""
+class RenderBackendError(PromptGSError, RuntimeError):
+    """The requested rendering backend cannot run here (no CUDA, tensors on the wrong device)."""
 
 
-def resolve_backend(backend: str, device: torch.device) -> str:
-    """Name of the backend ``render(backend=...)`` uses for tensors on ``device``."""
+def resolve_backend(backend: str, device: torch.device | None = None) -> str:
+    """The backend (``"cpu"`` or ``"cuda"``) that ``backend`` names here: the one place
+    the engine decides it.
+
+    With ``device``, the backend that renders tensors on that device (``auto`` follows the
+    device). Without, the backend a run or a command asks for: ``auto`` is CUDA where
+    torch sees a GPU, else the CPU.
+    """
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     if backend == "auto":
-        return "cuda" if device.type == "cuda" and torch.cuda.is_available() else "cpu"
+        on_gpu = device.type == "cuda" if device is not None else True
+        return "cuda" if on_gpu and torch.cuda.is_available() else "cpu"
     if backend == "cuda" and not torch.cuda.is_available():
-        raise RenderBackendError("backend 'cuda' needs a CUDA GPU, but torch.cuda.is_available() is False")
-    if backend == "cuda" and device.type != "cuda":
+        raise RenderBackendError("backend 'cuda' needs a CUDA GPU, but torch sees none (use --backend cpu)")
+    if device is not None and backend == "cuda" and device.type != "cuda":
         raise RenderBackendError("backend 'cuda' needs the Gaussians and cameras on a CUDA device")
-    if backend == "cpu" and device.type != "cpu":
+    if device is not None and backend == "cpu" and device.type != "cpu":
         raise RenderBackendError("backend 'cpu' needs the Gaussians and cameras on the CPU")
     return backend
+
+
+def backend_device(backend: str) -> torch.device:
+    """The device a run asking for ``backend`` keeps its Gaussians on (`resolve_backend`)."""
+    return torch.device(resolve_backend(backend))
+
+
+def on_backend_device(tensors: dict[str, Tensor], backend: str) -> dict[str, Tensor]:
+    """``tensors`` (a model's Gaussians), detached, on the device ``backend`` renders on."""
+    device = backend_device(backend)
+    return {name: value.detach().to(device) for name, value in tensors.items()}
 
 
 def render(
@@ -194,4 +213,4 @@ def render_with(
     return out_colors, out_alphas, info
 
 
-__all__ = ["render", "render_with", "resolve_backend", "RenderBackendError", "RENDER_MODES", "RASTERIZE_MODES", "BACKENDS"]
+__all__ = ["render", "render_with", "resolve_backend", "backend_device", "on_backend_device", "RenderBackendError", "RENDER_MODES", "RASTERIZE_MODES", "BACKENDS"]

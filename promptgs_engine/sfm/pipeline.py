@@ -382,10 +382,8 @@ def _map_global(pycolmap, db: Path, image_dir: Path, models_dir: Path, n: int, o
     and Ctrl-C takes effect then.
 
     GLOMAP keeps the points of tracks it could use for positioning (three views or more);
-    the triangulator, with the cameras fixed, adds the rest as the incremental mapper would
-    (on tumbler's 200x150 photos: 1,047 -> 2,786 points, and 300 training steps against
-    the given model went from -0.41 / -0.74 / -0.50 dB to +0.95 / +0.95 / -0.23 dB over
-    seeds 0-2, docs/sfm.md)."""
+    the triangulator, with the cameras fixed, adds the rest as the incremental mapper would:
+    GLOMAP's points alone are too few to start training from (docs/sfm.md)."""
     _empty_folder(models_dir)
     pipeline = pycolmap.GlobalPipelineOptions()
     pipeline.num_threads = pipeline.mapper.num_threads = options.num_threads

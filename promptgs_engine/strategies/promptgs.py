@@ -100,26 +100,21 @@ TUKEY_K = 1.5
 # resampled point; above it, a view's own bar is 3× its median error, so a noisy image
 # sets a higher one. CARVE_ERROR_THRESHOLD holds for boxes the run made (proposals, the
 # centre box); DRAWN_CARVE_ERROR_THRESHOLD for boxes the user drew around objects. A drone
-# of two pixels over terrain of a similar colour differs from it by 0.02-0.06 (the
-# 64-sample mountain: a median of 0.095, a tenth of its (drone, view) pairs under 0.04):
-# in a drawn box, 0.03 raised the drones' masked PSNR by 0.9-2.2 dB and the mountain's
-# recall from 0.78/0.75/0.79 to 0.78/0.84/0.82 (one box, seeds 0-2, 1500 steps). A
-# proposed box already holds its object's Gaussian (`focus.PromptFocus.seed_proposals`),
-# and 0.03 there filled it with the terrain around it (sparse scene: recall 0.77/0.74/0.74
-# -> 0.62/0.72/0.64); the centre box holds a whole real capture, whose texture a 1500-step
-# model misses by a few hundredths everywhere (tumbler -0.21 and -0.11 dB, fern -0.10 dB).
-# docs/promptgs.md, "Resampling: faint objects".
+# of two pixels over terrain of a similar colour differs from it by only a few hundredths,
+# so a drawn box, which marks objects, takes the faint ones too. A proposed box already
+# holds its object's Gaussian (`focus.PromptFocus.seed_proposals`), and the low bar there
+# fills it with the terrain around it; the centre box holds a whole real capture, whose
+# texture a short run misses by a few hundredths everywhere, so the low bar would carve
+# it all. docs/promptgs.md, "Resampling: faint objects".
 CARVE_ERROR_THRESHOLD = 0.08
 DRAWN_CARVE_ERROR_THRESHOLD = 0.03
 
 # Resampling's last round comes at a refinement that no refinement follows, so nothing
-# judged it (`PromptGSStrategy.idle_resampled`): on the 64-sample mountain it left 1.0k
-# (one box) and 3.4-3.5k (a box per group) Gaussians to the end, most under
-# carve_keep_opacity, and put three runs of twelve 0.6-2.0% over 3DGS's count. It is
-# judged once, at this fraction of the run's steps, by the same bar. Judged one refinement
-# interval after it came, as the other rounds are, it took the drones with it (recall
-# 0.84 -> 0.37, one box, seed 0): their Gaussians are still faint then and brighten later.
-# docs/results/economy/README.md, "Resampling's last round".
+# would judge it (`PromptGSStrategy.idle_resampled`) and its faint Gaussians, most under
+# carve_keep_opacity, would stay to the end. It is judged once, at this fraction of the
+# run's steps, by the same bar. Not one refinement interval after it came, as the other
+# rounds are: the objects' Gaussians are still faint then and brighten later, and that
+# judgement removed them.
 LAST_ROUND_JUDGED_AT = 0.8
 
 

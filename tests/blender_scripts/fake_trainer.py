@@ -4,7 +4,13 @@ Used as the add-on's "trainer Python" in tests (through a small executable wrapp
 parses ``--out`` and ``--job``, writes snapshot ``.npz`` files with numpy and prints
 JSON-lines events. ``FAKE_TRAINER_MODE`` picks the behaviour: ``ok`` (default), ``crash``
 (stderr lines, exit code 3), ``slow`` (runs until interrupted; SIGINT stops it cleanly),
-``stepwise`` (``sfm`` holds at its mapping stage until ``sfm_go`` appears beside its output).
+``stepwise`` (``sfm`` holds at its mapping stage until ``sfm_go`` appears beside its output),
+``ply`` (as ``ok``, and ends with RUN/point_cloud.ply, the last snapshot's Gaussians),
+``badsnapshot`` (as ``ok``, but its last snapshot is not a readable file),
+``tree`` (as ``slow``, with two child processes in their own sessions, as torchrun's
+ranks are: one ignores SIGINT, the other SIGINT and SIGTERM; their pids go to RUN/tree.json).
+Every ``checkpoint_every`` steps it writes RUN/ckpt.pt (the step, as text), and
+``--resume`` continues from it, as the real trainer does.
 ``propose``, ``dataset`` and ``sfm`` answer as those commands do; a job with
 ``propose_prompts`` writes RUN/proposals.json half-way, as ``train --propose-prompts`` does.
 """
@@ -13,6 +19,7 @@ import json
 import os
 import shutil
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -44,6 +51,35 @@ def snapshot(out: Path, step: int, n: int, seed: int) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **data)
     return path
+
+
+def write_ply(path: Path, snapshot_path: Path) -> None:
+    """A 3DGS PLY of a snapshot's Gaussians (positions as they are; the rest in PLY form)."""
+    with np.load(snapshot_path) as npz:
+        means, opacity, scale, rotation, color = (npz[k] for k in ("means", "opacity", "scale", "rotation", "color"))
+    columns = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2]}
+    for i in range(3):
+        columns[f"f_dc_{i}"] = (color[:, i] - 0.5) / 0.28209479177387814
+    columns["opacity"] = np.log(opacity / (1.0 - opacity))
+    for i in range(3):
+        columns[f"scale_{i}"] = np.log(scale[:, i])
+    for i in range(4):
+        columns[f"rot_{i}"] = rotation[:, i]
+    table = np.stack(list(columns.values()), axis=1).astype("<f4")
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(table)}\n"
+    header += "".join(f"property float {name}\n" for name in columns) + "end_header\n"
+    path.write_bytes(header.encode() + table.tobytes())
+
+
+def spawn_ranks(out: Path) -> None:
+    """Two stand-ins for torchrun's ranks: own sessions, deaf to SIGINT (and the second to SIGTERM)."""
+    pids = []
+    for ignored in ("signal.SIGINT", "signal.SIGINT, signal.SIGTERM"):
+        code = (f"import signal, time\nfor s in ({ignored},): signal.signal(s, signal.SIG_IGN)\n"
+                "while True: time.sleep(0.1)\n")
+        pids.append(subprocess.Popen([sys.executable, "-c", code], start_new_session=True,
+                                     stdin=subprocess.DEVNULL).pid)
+    (out / "tree.json").write_text(json.dumps(pids))
 
 
 def dataset(argv, mode):
@@ -145,29 +181,54 @@ def main(argv):
     out = Path(argv[argv.index("--out") + 1])
     job = json.loads(Path(argv[argv.index("--job") + 1]).read_text()) if "--job" in argv else {}
     iterations = int(job.get("iterations", 30))
+    checkpoint_every = int(job.get("checkpoint_every") or 1000)
     print("fake trainer: not an event line", flush=True)
+    print(f"fake trainer: {mode} run into {out}", file=sys.stderr, flush=True)
     if mode == "crash":
         print("Traceback (most recent call last):\nRuntimeError: the fake trainer crashed", file=sys.stderr)
         sys.exit(3)
+    step = 0
+    if "--resume" in argv:
+        if not (out / "ckpt.pt").is_file():
+            print(f"promptgs: error: {out}: nothing to resume (no ckpt.pt)", file=sys.stderr)
+            sys.exit(2)
+        step = int((out / "ckpt.pt").read_text())
+        print(f"fake trainer: resumed at step {step}", file=sys.stderr, flush=True)
+        (out / "resumed_at").write_text(str(step))
+    if mode == "tree":
+        spawn_ranks(out)
     emit(event="start", out=str(out), iterations=iterations, backend="cpu", strategy=job.get("strategy"),
          n_train=10, n_test=2, n_gaussians=100)
+    slow = mode in ("slow", "tree")
+    last = None
     try:
-        step = 0
-        while mode == "slow" or step < iterations:
+        while slow or step < iterations:
             step += 1
             n = 100 + 10 * step
             emit(event="progress", step=step, iterations=iterations, loss=1.0 / step, psnr=10.0 + step,
                  n_gaussians=n, elapsed_s=step * 0.01, eta_s=(iterations - step) * 0.01)
+            if step % checkpoint_every == 0:
+                (out / "ckpt.pt").write_text(str(step))
             if step % 10 == 0:
-                emit(event="snapshot", step=step, path=str(snapshot(out, step, n, 0)), n_gaussians=n)
+                last = snapshot(out, step, n, 0)
+                if mode == "badsnapshot" and step == iterations:
+                    last.write_bytes(b"not a snapshot")
+                emit(event="snapshot", step=step, path=str(last), n_gaussians=n)
+                if mode == "badsnapshot":
+                    time.sleep(0.3)  # each snapshot on its own: a client loads every one
             if job.get("propose_prompts") and step == iterations // 2:
                 propose_in_training(out, step)
-            time.sleep(0.05 if mode == "slow" else 0.001)
+            time.sleep(0.05 if slow else 0.001)
     except KeyboardInterrupt:
         (out / "cancelled").write_text(str(step))
         emit(event="error", message="KeyboardInterrupt", step=step, log=str(out / "train.log"))
         sys.exit(130)
-    emit(event="done", out=str(out), ply="", metrics={"psnr": 20.0})
+    (out / "ckpt.pt").write_text(str(step))
+    ply = ""
+    if mode == "ply" and last is not None:
+        write_ply(out / "point_cloud.ply", last)
+        ply = str(out / "point_cloud.ply")
+    emit(event="done", out=str(out), ply=ply, metrics={"psnr": 20.0})
 
 
 if __name__ == "__main__":

@@ -9,9 +9,11 @@ by the add-on fails loudly and is recorded.
 """
 
 import json
+import os
 import sys
 import time
 import traceback
+from pathlib import Path
 
 BLOCKED = ("torch", "promptgs_engine", "pycolmap", "plyfile")
 blocked_attempts: list[str] = []
@@ -37,16 +39,18 @@ def save():
         json.dump(results, handle, indent=1)
 
 
-def check(fn):
-    """Run a check now; record ok / the error; details a check returns are kept."""
+def check(fn, *args, name: str = ""):
+    """Run a check now (``fn(*args)``, recorded as ``name`` or the function's name); record
+    ok / the error; details a check returns are kept. Used as a decorator without args."""
+    name = name or fn.__name__
     start = time.time()
     try:
-        info = fn() or {}
-        results[fn.__name__] = {"ok": True, **info}
+        info = fn(*args) or {}
+        results[name] = {"ok": True, **info}
     except Exception as exc:  # recorded for the test to show
-        results[fn.__name__] = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
-                                "traceback": traceback.format_exc()[-3000:]}
-    results[fn.__name__]["seconds"] = round(time.time() - start, 2)
+        results[name] = {"ok": False, "error": f"{type(exc).__name__}: {exc}",
+                         "traceback": traceback.format_exc()[-3000:]}
+    results[name]["seconds"] = round(time.time() - start, 2)
     save()
     return fn
 
@@ -79,6 +83,86 @@ def run_until_idle(timeout: float = 300.0, on_events=None) -> None:
             return
         time.sleep(0.05)
     raise TimeoutError("the trainer run did not finish in time")
+
+
+def drain_until(condition, timeout: float = 60.0, what: str = "the condition") -> None:
+    """Drive the follower (as its timer would) until ``condition()``; a timeout names
+    ``what`` and the shown run's state."""
+    training = addon("training")
+    deadline = time.time() + timeout
+    while not condition():
+        if time.time() > deadline:
+            record = training.shown_record(bpy.context.scene)
+            shown = f" ({record.status}: {record.message})" if record is not None else ""
+            raise TimeoutError(f"timed out waiting for {what}{shown}")
+        training.drain_and_apply(bpy.context)
+        time.sleep(0.02)
+
+
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and every process below it (read from /proc here, not with the add-on's code)."""
+    parents = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                text = (entry / "stat").read_text()
+            except OSError:
+                continue
+            parents[int(entry.name)] = int(text[text.rindex(")") + 2:].split()[1])
+    tree, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        tree.append(current)
+        todo += [child for child, parent in parents.items() if parent == current]
+    return tree
+
+
+def process_gone(pid: int) -> bool:
+    """Whether the process has exited (a zombie waiting for its parent counts as gone)."""
+    if not Path("/proc/self/stat").exists():  # no /proc (macOS): ask the kernel
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        except OSError:
+            pass
+        return False
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return True
+    return text[text.rindex(")") + 2:].split()[0] == "Z"
+
+
+def cancel_and_wait(pids: list[int], gone_within: float) -> tuple[float, list[int]]:
+    """Press Cancel, follow the run to its end, wait up to ``gone_within`` s for every one
+    of ``pids`` to exit: (seconds from the press, the pids still running)."""
+    start = time.time()
+    bpy.ops.promptgs.cancel()
+    run_until_idle(60)
+    deadline = time.time() + gone_within
+    while not all(process_gone(pid) for pid in pids) and time.time() < deadline:
+        time.sleep(0.05)
+    return time.time() - start, [pid for pid in pids if not process_gone(pid)]
+
+
+def delete_selected_points(obj, select) -> None:
+    """Delete points as a user does: select them, Edit Mode, Delete (a points-only mesh on
+    4.2–5.0, a point cloud from 5.1 on)."""
+    for other in bpy.context.selected_objects:
+        other.select_set(False)
+    obj.select_set(True)
+    bpy.context.view_layer.objects.active = obj
+    if obj.type == "MESH":
+        obj.data.vertices.foreach_set("select", select)
+        bpy.ops.object.mode_set(mode="EDIT")
+        bpy.ops.mesh.delete(type="VERT")
+    else:
+        attr = obj.data.attributes.get(".selection") or obj.data.attributes.new(".selection", "BOOLEAN", "POINT")
+        attr.data.foreach_set("value", select)
+        bpy.ops.object.mode_set(mode="EDIT")
+        bpy.ops.pointcloud.delete()
+    bpy.ops.object.mode_set(mode="OBJECT")
 
 
 def forbidden_modules() -> list[str]:
