@@ -27,7 +27,15 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any, Callable
 
+# Idle OpenMP threads sleep, as in the trainer (promptgs_engine sets this too, but only if
+# imported before torch loads the OpenMP runtime): with spinning threads a 2-thread step
+# measures the spinning.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from opensplat_side_by_side import cpu_model
 
 
 class Clock:
@@ -170,15 +178,19 @@ def main(argv: list[str] | None = None) -> int:
         n = trainer.n_gaussians
         res = profile(trainer, args.start_step, args.steps, args.warmup, args.clock == "cpu")
         cam = trainer.scene.train_cameras[0]
+    from promptgs_engine import _C
+
     res.update({
         "dataset": str(args.dataset), "images": args.images, "ply": str(args.ply) if args.ply else None,
         "size": f"{cam.width}x{cam.height}", "n_gaussians": n, "steps": args.steps,
         "sh_degree_active": trainer.active_sh_degree(args.start_step),
         "threads": torch.get_num_threads(), "clock": args.clock, "load_average": [load0, os.getloadavg()[0]],
+        "cpu": cpu_model(), "kernels": _C.simd_variant(), "simd_cap": os.environ.get("PROMPTGS_SIMD"),
     })
     med, der = res["median_s"], res["derived_median_s"]
     print(f"{res['size']}, {n} Gaussians, SH degree {res['sh_degree_active']}, {res['threads']} threads, {args.clock} clock, "
           f"load {load0:.1f} -> {res['load_average'][1]:.1f}; medians of {args.steps} steps")
+    print(f"{res['cpu'].get('model', '?')}, {res['kernels']} kernels (PROMPTGS_SIMD={res['simd_cap']})")
     for k in sorted(med, key=lambda k: -med[k]):
         print(f"  {k:45s} {med[k] * 1e3:8.2f} ms")
     for k, v in der.items():

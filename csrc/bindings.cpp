@@ -89,11 +89,11 @@ std::vector<Tensor> forward(Tensor means2d, Tensor conics, Tensor colors, Tensor
         pybind11::gil_scoped_release no_gil;
         bins = promptgs::bin_gaussians(in, depths.data_ptr<float>());
     }
-    rows = torch::empty({static_cast<int64_t>(bins.ids.size())}, torch::TensorOptions().dtype(torch::kInt16));
+    rows = torch::empty({static_cast<int64_t>(bins.ids.size())}, torch::TensorOptions().dtype(torch::kInt32));
     {
         pybind11::gil_scoped_release no_gil;
         promptgs::rasterize_forward(in, bins, out_colors.data_ptr<float>(), out_alphas.data_ptr<float>(),
-                                    last_ids.data_ptr<int32_t>(), reinterpret_cast<uint16_t*>(rows.data_ptr<int16_t>()));
+                                    last_ids.data_ptr<int32_t>(), reinterpret_cast<uint32_t*>(rows.data_ptr<int32_t>()));
     }
     const int64_t m = static_cast<int64_t>(bins.order.size()), n_isects = static_cast<int64_t>(bins.ids.size());
     const int64_t n_offsets = static_cast<int64_t>(bins.offsets.size());
@@ -120,7 +120,7 @@ std::vector<Tensor> backward(int64_t n, Tensor background, int64_t width, int64_
     check(tile_ids, "tile_ids", torch::kInt32, {-1});
     check(tile_order, "tile_order", torch::kInt32, {M});
     TORCH_CHECK(M <= N, "tile_order has more entries than Gaussians");
-    check(tile_rows, "tile_rows", torch::kInt16, {tile_ids.numel()});
+    check(tile_rows, "tile_rows", torch::kInt32, {tile_ids.numel()});
     check(splats, "splats", torch::kFloat32, {M, promptgs::kSplatFloats});
     check(sorted_colors, "sorted_colors", torch::kFloat32, {M, D});
     if (background.numel() > 0) check(background, "background", torch::kFloat32, {D});
@@ -152,7 +152,7 @@ std::vector<Tensor> backward(int64_t n, Tensor background, int64_t width, int64_
     {
         pybind11::gil_scoped_release no_gil;
         promptgs::rasterize_backward(in, bins, out_alphas.data_ptr<float>(), last_ids.data_ptr<int32_t>(),
-                                     reinterpret_cast<const uint16_t*>(tile_rows.data_ptr<int16_t>()),
+                                     reinterpret_cast<const uint32_t*>(tile_rows.data_ptr<int32_t>()),
                                      grad_colors.data_ptr<float>(), grad_alphas.data_ptr<float>(),
                                      g_means2d.data_ptr<float>(), g_conics.data_ptr<float>(),
                                      g_colors.data_ptr<float>(), g_opac.data_ptr<float>(),
@@ -330,6 +330,33 @@ Tensor ssim_bwd(Tensor grad, Tensor partials, Tensor img, Tensor ref, Tensor win
     return grad_img;
 }
 
+std::vector<Tensor> photometric_fwd(Tensor img, Tensor ref, Tensor window) {
+    const promptgs::SsimShape s = ssim_shape(img, ref, window);
+    auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+    Tensor l1 = torch::empty({s.batch, s.height, s.width}, f32);
+    Tensor dssim = torch::empty({s.batch, s.height, s.width}, f32);
+    Tensor partials = torch::empty({3, s.batch, s.height, s.width, s.channels}, f32);
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::photometric_forward(s, img.data_ptr<float>(), ref.data_ptr<float>(), window.data_ptr<float>(),
+                                      l1.data_ptr<float>(), dssim.data_ptr<float>(), partials.data_ptr<float>());
+    }
+    return {l1, dssim, partials};
+}
+
+Tensor photometric_bwd(double ssim_grad, double l1_grad, Tensor partials, Tensor img, Tensor ref, Tensor window) {
+    const promptgs::SsimShape s = ssim_shape(img, ref, window);
+    check(partials, "partials", torch::kFloat32, {3, s.batch, s.height, s.width, s.channels});
+    Tensor grad_img = torch::empty_like(img);
+    {
+        pybind11::gil_scoped_release no_gil;
+        promptgs::photometric_backward(s, static_cast<float>(ssim_grad), static_cast<float>(l1_grad),
+                                       partials.data_ptr<float>(), img.data_ptr<float>(), ref.data_ptr<float>(),
+                                       window.data_ptr<float>(), grad_img.data_ptr<float>());
+    }
+    return grad_img;
+}
+
 int num_threads() { return omp_get_max_threads(); }
 
 std::map<std::string, double> stage_times(bool reset, bool cpu) {
@@ -348,7 +375,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
     m.doc() = "PromptGS CPU rasterizer: tile-based 3D Gaussian splatting forward and backward (OpenMP)";
     m.def("rasterize_forward", &forward,
           "Composite one image: (means2d, conics, colors, opacities, depths, radii, background, width, height) -> "
-          "[colors HxWxD, alphas HxWx1, last_ids HxW, tile_offsets, tile_ids, tile_order, tile_rows int16, "
+          "[colors HxWxD, alphas HxWx1, last_ids HxW, tile_offsets, tile_ids, tile_order, tile_rows int32, "
           "splats Mx8, sorted_colors MxD].");
     m.def("rasterize_backward", &backward,
           "Gradients of one image: (n_gaussians, background, width, height, then the forward's tile_offsets, "
@@ -371,6 +398,12 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           "padding): (img, ref, window, need_grad) -> [ssim BxHxWxC, partials for ssim_backward or empty].");
     m.def("ssim_backward", &ssim_bwd,
           "dL/dimg from (dL/dssim, partials, img, ref, window) of ssim_forward.");
+    m.def("photometric_forward", &photometric_fwd,
+          "The 3DGS loss's per-pixel maps of img against ref ([B,H,W,C] float32): (img, ref, window) -> "
+          "[channel mean of |img - ref| BxHxW, channel mean of 1 - SSIM BxHxW, partials for photometric_backward].");
+    m.def("photometric_backward", &photometric_bwd,
+          "dL/dimg from (dL/dSSIM at every element, the factor of sgn(img - ref), partials, img, ref, window): the "
+          "SSIM part as ssim_backward gives it for that constant gradient, plus the L1 part.");
     m.def("num_threads", &num_threads, "OpenMP threads the rasterizer uses.");
     m.def("simd_variant", [] { return std::string(promptgs::kernels().name); },
           "Instruction set of the kernels picked for this CPU (avx512, avx2, sse2 or native; PROMPTGS_SIMD caps it).");

@@ -26,12 +26,13 @@ struct Kernels {
                                      int64_t end, const int32_t* radii, const float* v_means2d, const float* v_conics,
                                      const float* v_depths, const float* v_colors, float* v_means, float* v_quats,
                                      float* v_scales, float* v_sh, float* v_sh_rest);
-    // SSIM of output rows [o0, o1) of one image (see ssim_kernels.inc).
+    // SSIM of output rows [o0, o1) of one image, and the loss's per-pixel maps (see
+    // ssim_kernels.inc).
     using SsimForwardBand = void (*)(const SsimShape& s, const float* x, const float* y, const float* w, int o0, int o1,
-                                     float* value, float* p0, float* p1, float* p2);
-    using SsimBackwardBand = void (*)(const SsimShape& s, const float* g, const float* p0, const float* p1,
-                                      const float* p2, const float* x, const float* y, const float* w, int o0, int o1,
-                                      float* grad);
+                                     float* value, float* p0, float* p1, float* p2, float* l1, float* dssim);
+    using SsimBackwardBand = void (*)(const SsimShape& s, const float* g, float g_all, const float* p0,
+                                      const float* p1, const float* p2, const float* x, const float* y,
+                                      const float* w, int o0, int o1, bool with_l1, float l1_coef, float* grad);
     // Entry c of forward/backward is specialised for c channels (c = 1..kMaxChannelsFixed);
     // entry 0 takes any channel count. Use kernel_for() to pick.
     Forward forward[kMaxChannelsFixed + 1];

@@ -89,11 +89,11 @@ struct TileArgs {
     float* out_colors = nullptr;  // [H, W, D]
     float* out_alphas = nullptr;  // [H, W]
     int32_t* out_last = nullptr;  // [H, W]
-    uint16_t* out_rows = nullptr;  // [n_isects] bit r: the Gaussian composited a pixel of tile row r
+    uint32_t* out_rows = nullptr;  // [n_isects] where the Gaussian composited a pixel (see kRowParts)
     // backward inputs
     const float* alphas = nullptr;       // [H, W] forward alphas
     const int32_t* last_ids = nullptr;   // [H, W] forward last contributors
-    const uint16_t* rows = nullptr;      // [n_isects] forward out_rows
+    const uint32_t* rows = nullptr;      // [n_isects] forward out_rows
     const float* grad_colors = nullptr;  // [H, W, D]
     const float* grad_alphas = nullptr;  // [H, W]
 };
@@ -109,8 +109,8 @@ struct TileScratch {
     std::vector<float> ys, rys;     // [n] their mean2d y and Splat::ry, for the row masks
     std::vector<float> half_a;      // [n] 0.5 * conic a
     std::vector<float> row_terms;   // [n, 2, kTile] per tile row: b dy and 0.5 c dy^2 (dy = y - row centre)
-    std::vector<uint16_t> masks;    // [n] tile rows each one reaches
-    std::vector<int32_t> row_list;  // [kTile, row_stride] per tile row, the list positions of those reaching it
+    std::vector<uint32_t> masks;    // [n] tile rows (and row halves) each one reaches
+    std::vector<int32_t> row_list;  // [2 kTile, row_stride] per tile row (half), the list positions of those reaching it
     int row_stride = 0;             // room per row: the list length plus a vector of slack
     std::vector<float> acc;         // D * kTile floats (colour sums for any channel count)
     void reserve(int n, int64_t d) {
@@ -124,7 +124,7 @@ struct TileScratch {
             row_terms.resize(un * 2 * kTile);
             masks.resize(padded);
             row_stride = static_cast<int>(padded) + 16;
-            row_list.resize(static_cast<size_t>(row_stride) * kTile);
+            row_list.resize(static_cast<size_t>(row_stride) * 2 * kTile);
         }
         if (colors.size() < un * static_cast<size_t>(d)) colors.resize(un * static_cast<size_t>(d));
         if (acc.size() < static_cast<size_t>(d) * kTile) acc.resize(static_cast<size_t>(d) * kTile);
@@ -155,16 +155,16 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths);
 
 // Composites one image. Outputs: colours [H, W, D], alphas [H, W], last_ids [H, W] (index
 // into bins.ids of the last Gaussian composited at each pixel, -1 if none), rows
-// [n_isects] (per tile-list entry, the tile rows where it composited a pixel; the backward
-// visits only those).
+// [n_isects] (per tile-list entry, the tile rows, or with kernels narrower than a tile row the
+// row halves, where it composited a pixel; the backward visits only those).
 void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_colors,
-                       float* out_alphas, int32_t* last_ids, uint16_t* rows);
+                       float* out_alphas, int32_t* last_ids, uint32_t* rows);
 
 // Gradients for one image, given the forward outputs and dL/d(colours [H,W,D], alphas [H,W]).
 // Outputs (overwritten): means2d [N,2], conics [N,3], colors [N,D], opacities [N] and,
 // when grad_abs_means2d is not null, the per-pixel sums of |dL/dmeans2d| [N,2].
 void rasterize_backward(const RasterInputs& in, const TileBinsView& bins, const float* out_alphas,
-                        const int32_t* last_ids, const uint16_t* rows, const float* grad_colors,
+                        const int32_t* last_ids, const uint32_t* rows, const float* grad_colors,
                         const float* grad_alphas,
                         float* grad_means2d, float* grad_conics, float* grad_colors_out,
                         float* grad_opacities, float* grad_abs_means2d);

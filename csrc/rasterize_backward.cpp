@@ -21,7 +21,7 @@
 namespace promptgs {
 
 void rasterize_backward(const RasterInputs& in, const TileBinsView& bins, const float* out_alphas,
-                        const int32_t* last_ids, const uint16_t* rows, const float* grad_colors,
+                        const int32_t* last_ids, const uint32_t* rows, const float* grad_colors,
                         const float* grad_alphas,
                         float* grad_means2d, float* grad_conics, float* grad_colors_out, float* grad_opacities,
                         float* grad_abs_means2d) {

@@ -227,7 +227,7 @@ TileBins bin_gaussians(const RasterInputs& in, const float* depths) {
 }
 
 void rasterize_forward(const RasterInputs& in, const TileBins& bins, float* out_colors, float* out_alphas,
-                       int32_t* last_ids, uint16_t* rows) {
+                       int32_t* last_ids, uint32_t* rows) {
     const int n_tiles = bins.tiles_x * bins.tiles_y;
     TileArgs args;
     args.ids = bins.ids.data();

@@ -37,7 +37,7 @@ void ssim_forward(const SsimShape& s, const float* img, const float* ref, const 
     for_each_band(s, [&](int64_t b, int o0, int o1) {
         const int64_t at = b * image;
         band(s, img + at, ref + at, window, o0, o1, ssim + at, partials ? partials + at : nullptr,
-             partials ? partials + n + at : nullptr, partials ? partials + 2 * n + at : nullptr);
+             partials ? partials + n + at : nullptr, partials ? partials + 2 * n + at : nullptr, nullptr, nullptr);
     });
 }
 
@@ -47,8 +47,31 @@ void ssim_backward(const SsimShape& s, const float* grad, const float* partials,
     const Kernels::SsimBackwardBand band = kernels().ssim_backward_band;
     for_each_band(s, [&](int64_t b, int o0, int o1) {
         const int64_t at = b * image;
-        band(s, grad + at, partials + at, partials + n + at, partials + 2 * n + at, img + at, ref + at, window, o0, o1,
-             grad_img + at);
+        band(s, grad + at, 0.f, partials + at, partials + n + at, partials + 2 * n + at, img + at, ref + at, window, o0,
+             o1, false, 0.f, grad_img + at);
+    });
+}
+
+void photometric_forward(const SsimShape& s, const float* img, const float* ref, const float* window, float* l1,
+                         float* dssim, float* partials) {
+    const int64_t n = s.batch * s.height * s.width * s.channels, image = s.height * s.width * s.channels;
+    const int64_t pixels = s.height * s.width;
+    const Kernels::SsimForwardBand band = kernels().ssim_forward_band;
+    for_each_band(s, [&](int64_t b, int o0, int o1) {
+        const int64_t at = b * image;
+        band(s, img + at, ref + at, window, o0, o1, nullptr, partials + at, partials + n + at, partials + 2 * n + at,
+             l1 + b * pixels, dssim + b * pixels);
+    });
+}
+
+void photometric_backward(const SsimShape& s, float ssim_grad, float l1_grad, const float* partials,
+                          const float* img, const float* ref, const float* window, float* grad_img) {
+    const int64_t n = s.batch * s.height * s.width * s.channels, image = s.height * s.width * s.channels;
+    const Kernels::SsimBackwardBand band = kernels().ssim_backward_band;
+    for_each_band(s, [&](int64_t b, int o0, int o1) {
+        const int64_t at = b * image;
+        band(s, nullptr, ssim_grad, partials + at, partials + n + at, partials + 2 * n + at, img + at, ref + at, window,
+             o0, o1, true, l1_grad, grad_img + at);
     });
 }
 

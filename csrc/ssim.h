@@ -25,4 +25,16 @@ void ssim_forward(const SsimShape& s, const float* img, const float* ref, const 
 void ssim_backward(const SsimShape& s, const float* grad, const float* partials, const float* img, const float* ref,
                    const float* window, float* grad_img);
 
+// The per-pixel maps of the 3DGS loss in one pass: the channel means of |img - ref| (l1
+// [B,H,W]) and of 1 - SSIM (dssim [B,H,W]), each summed in channel order and divided by C,
+// and the partials of ssim_forward (not null); the SSIM image itself is not kept.
+void photometric_forward(const SsimShape& s, const float* img, const float* ref, const float* window, float* l1,
+                         float* dssim, float* partials);
+
+// dL/dimg [B,H,W,C] of the loss a * mean(l1) + b * mean(dssim) from the two per-element
+// factors autograd would give it: ssim_grad, dL/dSSIM, the same at every pixel and channel,
+// and l1_grad, which multiplies sgn(img - ref) and is added last.
+void photometric_backward(const SsimShape& s, float ssim_grad, float l1_grad, const float* partials,
+                          const float* img, const float* ref, const float* window, float* grad_img);
+
 }  // namespace promptgs

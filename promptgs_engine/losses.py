@@ -90,13 +90,24 @@ def photometric_maps(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 
     per-pixel maps: (loss, L1 map [B, H, W], D-SSIM map [B, H, W]), both maps averaged over
     the channels. The maps carry no gradient.
 
-    Where the fused SSIM applies, the loss is one autograd node whose backward is the fused
-    SSIM's plus the L1 term, computed with the very operations (and order) that autograd
-    applies to the torch expression ``photometric_maps_torch`` (the same values to the
-    last bit), without its two dozen separate nodes and image-sized temporaries."""
-    if _fused_ssim_applies(img, ref) and img.requires_grad:
+    For three-channel images where the fused SSIM applies, the loss is one autograd node
+    whose forward makes both maps with the SSIM and whose backward is the fused SSIM's plus
+    the L1 term, computed with the very operations (and order) that autograd applies to the
+    torch expression ``photometric_maps_torch`` (the same values to the last bit), without
+    its two dozen separate nodes and image-sized temporaries."""
+    if _fused_photometric_applies(img, ref) and img.requires_grad:
         return _FusedPhotometric.apply(img, ref, float(ssim_lambda))
     return photometric_maps_torch(img, ref, ssim_lambda)
+
+
+def _fused_photometric_applies(img: torch.Tensor, ref: torch.Tensor) -> bool:
+    """Three channels (the maps' channel means are summed in torch's order for three) where
+    the fused SSIM applies, with an extension that has the fused loss."""
+    if img.shape[-1] != 3 or not _fused_ssim_applies(img, ref):
+        return False
+    from . import _C
+
+    return hasattr(_C, "photometric_forward")
 
 
 def photometric_maps_torch(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2):
@@ -108,7 +119,11 @@ def photometric_maps_torch(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: fl
 
 
 class _FusedPhotometric(torch.autograd.Function):
-    """``photometric_maps`` as one node; the gradient flows to ``img`` only."""
+    """``photometric_maps`` of three-channel images as one node, in C++ (csrc/ssim.cpp): the
+    maps come with the SSIM (``_C.photometric_forward``: the channel means of |img − ref| and
+    1 − SSIM, summed in channel order and divided by 3, as torch's mean over a last dimension
+    of three does), and the backward is the fused SSIM's with the L1 term's sgn added; no
+    image-sized temporaries besides the SSIM partials. The gradient flows to ``img`` only."""
 
     @staticmethod
     def forward(ctx, img: torch.Tensor, ref: torch.Tensor, lam: float):  # type: ignore[override]
@@ -116,12 +131,9 @@ class _FusedPhotometric(torch.autograd.Function):
 
         window = _ssim_window(img.device)
         img_c, ref_c = img.detach().contiguous(), ref.detach().contiguous()
-        ssim, partials = _C.ssim_forward(img_c, ref_c, window, True)
-        diff = img_c - ref_c
-        l1_map = diff.abs().mean(dim=-1)
-        dssim_map = (1.0 - ssim).mean(dim=-1)
+        l1_map, dssim_map, partials = _C.photometric_forward(img_c, ref_c, window)
         loss = (1.0 - lam) * l1_map.mean() + lam * dssim_map.mean()
-        ctx.save_for_backward(img_c, ref_c, partials, window, diff)
+        ctx.save_for_backward(img_c, ref_c, partials, window)
         ctx.lam = lam
         ctx.mark_non_differentiable(l1_map, dssim_map)
         return loss, l1_map, dssim_map
@@ -130,17 +142,15 @@ class _FusedPhotometric(torch.autograd.Function):
     def backward(ctx, grad: torch.Tensor, _g_l1: torch.Tensor, _g_dssim: torch.Tensor):  # type: ignore[override]
         from . import _C
 
-        img, ref, partials, window, diff = ctx.saved_tensors
+        img, ref, partials, window = ctx.saved_tensors
         lam = ctx.lam
-        n = diff.numel() // diff.shape[-1]  # pixels of the maps
-        channels = diff.shape[-1]
+        channels = img.shape[-1]
+        n = img.numel() // channels
         # autograd of photometric_maps_torch, node by node: the scalar through MulBackward
         # and the two MeanBackwards, then AbsBackward (sgn) and RSubBackward (negation)
         g_l1 = grad * (1.0 - lam) / n / channels
         g_ssim = -(grad * lam / n / channels)
-        grad_ssim = g_ssim.expand(diff.shape).contiguous()
-        grad_img = _C.ssim_backward(grad_ssim, partials, img, ref, window)
-        return grad_img.add_(g_l1 * diff.sgn()), None, None
+        return _C.photometric_backward(float(g_ssim), float(g_l1), partials, img, ref, window), None, None
 
 
 def ssim_map_torch(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:

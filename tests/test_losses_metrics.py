@@ -1,6 +1,7 @@
 import math
 from types import SimpleNamespace
 
+import pytest
 import torch
 
 from promptgs_engine import losses, metrics
@@ -97,13 +98,15 @@ def test_fused_cpu_ssim_matches_torch_ssim_and_its_gradient():
         assert (a.grad.double() - b.grad).abs().max() < 2e-4 * scale
 
 
-def test_fused_photometric_loss_equals_the_torch_expression_bit_for_bit():
+@pytest.mark.parametrize("shape", [(2, 23, 37, 3), (1, 16, 32, 3)])
+def test_fused_photometric_loss_equals_the_torch_expression_bit_for_bit(shape):
     """The one-node loss gives the loss, both maps and the image gradient of the torch
     expression to the last bit (so training results do not change), including pixels
-    where the render equals the reference (sgn 0)."""
+    where the render equals the reference (sgn 0); rows whose window is cut by the image's
+    edge and rows of whole vectors (32 x 3 floats) or not (37 x 3)."""
     g = torch.Generator().manual_seed(5)
-    img = torch.rand(2, 23, 37, 3, generator=g)
-    ref = torch.rand(2, 23, 37, 3, generator=g)
+    img = torch.rand(*shape, generator=g)
+    ref = torch.rand(*shape, generator=g)
     ref[0, :5] = img[0, :5]
     for lam in (0.2, 0.37):
         results = []
@@ -112,8 +115,9 @@ def test_fused_photometric_loss_equals_the_torch_expression_bit_for_bit():
             loss, l1_map, dssim_map = fn(x, ref, lam)
             (loss * 1.7).backward()
             results.append((loss.detach(), l1_map.detach(), dssim_map.detach(), x.grad))
+            if fn is losses.photometric_maps:  # the fused node, not the torch expression again
+                assert type(loss.grad_fn).__name__ == "_FusedPhotometricBackward"
         fused, plain = results
-        assert losses._fused_ssim_applies(img, ref)
         for a, b in zip(fused, plain):
             assert a.shape == b.shape and torch.equal(a, b)
     x = img.clone().requires_grad_(True)
@@ -140,3 +144,16 @@ def test_reference_edges_are_kept_per_view_and_per_crop_window():
         kept = torch.stack([cache.of(v) for v in crops])
         assert torch.equal(edge_losses_to(render, kept), edge_losses(render, torch.stack([v.gt for v in crops])))
     assert len(cache) == 2
+
+
+def test_loss_and_mse_reads_the_image_s_mse_without_touching_it():
+    """The step's MSE is the plain expression's to the bit, and neither image changes."""
+    g = torch.Generator().manual_seed(2)
+    img = torch.rand(1, 9, 13, 3, generator=g).requires_grad_(True)
+    ref = torch.rand(1, 9, 13, 3, generator=g)
+    before = img.detach().clone(), ref.clone()
+    loss = (img * 2.0).sum()
+    loss_value, mse_value = metrics.loss_and_mse(loss, img, ref)
+    assert mse_value == float(((img.detach() - ref) ** 2).mean())
+    assert loss_value == float(loss.detach())
+    assert torch.equal(img.detach(), before[0]) and torch.equal(ref, before[1])

@@ -244,9 +244,10 @@ def cpu_and_reference(scene64, Ks64, width, height, weights):
 
 def test_thin_slanted_gaussians_that_graze_tile_corners():
     """Wire-like Gaussians (long, thin, slanted, some faint) crossing the 16-pixel tiles at
-    every angle: the rasterizer drops the tile rows whose slice of the ellipse misses the
-    tile's columns, and a row dropped wrongly would leave a gap in the line. Image and
-    gradients against the reference, on a 64x48 image (12 tiles)."""
+    every angle: the rasterizer drops the tile rows (and, with kernels narrower than a row,
+    the halves of rows) whose slice of the ellipse misses their columns, and one dropped
+    wrongly would leave a gap in the line. Image and gradients against the reference, on a
+    64x48 image (12 tiles)."""
     n, width, height = 120, 64, 48
     g = torch.Generator().manual_seed(7)
     angle = torch.rand(n, generator=g, dtype=torch.float64) * torch.pi
@@ -271,6 +272,38 @@ def test_thin_slanted_gaussians_that_graze_tile_corners():
     assert (cpu_img - ref_img).abs().max() < 5e-5
     assert (cpu_alpha - ref_alpha).abs().max() < 5e-5
     for a, b in zip(cpu_grads, ref_grads):  # the conics of thin Gaussians cost float32 a digit
+        assert (a - b).abs().max() <= 1e-3 * b.abs().max() + 1e-6
+
+
+def test_culling_of_tile_row_halves_keeps_small_gaussians_that_cross_the_middle():
+    """Small Gaussians (radius 1-3 px) centred just left and right of the middle of a tile
+    row and of the tile edges, on every row: with kernels narrower than a tile row each half
+    of a row walks only the Gaussians whose ellipse reaches its columns, so a Gaussian whose
+    edge reaches one pixel across the middle must still be composited there. Image and
+    gradients against the reference, on a 48x32 image."""
+    width, height, f = 48, 32, 40.0
+    g = torch.Generator().manual_seed(11)
+    xs = torch.tensor([7.3, 7.8, 8.0, 8.2, 8.7, 15.6, 16.4, 23.5, 24.5, 39.9, 40.1], dtype=torch.float64)
+    ys = torch.arange(1.5, height, 3.0, dtype=torch.float64)
+    px, py = torch.meshgrid(xs, ys, indexing="ij")
+    px, py = px.flatten() + torch.rand(px.numel(), generator=g, dtype=torch.float64) * 0.1, py.flatten()
+    n = px.numel()
+    depth = 3.0
+    means = torch.stack([(px - width / 2) * depth / f, (py - height / 2) * depth / f, torch.full((n,), depth,
+                        dtype=torch.float64)], -1)
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    scales = (torch.rand(n, 3, generator=g, dtype=torch.float64) * 0.5 + 0.25) * depth / f  # 0.25-0.75 px sigma
+    opacities = torch.rand(n, generator=g, dtype=torch.float64) * 0.5 + 0.45
+    colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    Ks = torch.tensor([[[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    weights = torch.randn(1, height, width, 3, generator=g, dtype=torch.float64)
+    (cpu_img, cpu_alpha, cpu_grads), (ref_img, ref_alpha, ref_grads) = cpu_and_reference(
+        (means, quats, scales, opacities, colors), Ks, width, height, weights)
+    # the Gaussians reach across the middle of the rows (columns 7 and 8 both covered)
+    assert (ref_alpha[0, :, 7:9, 0] > 0.05).all(dim=1).sum() > 5
+    assert (cpu_img - ref_img).abs().max() < 5e-5
+    assert (cpu_alpha - ref_alpha).abs().max() < 5e-5
+    for a, b in zip(cpu_grads, ref_grads):
         assert (a - b).abs().max() <= 1e-3 * b.abs().max() + 1e-6
 
 
