@@ -52,7 +52,9 @@ def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     return ssim_map_torch(img, ref)
 
 
-def _fused_ssim_applies(img: torch.Tensor, ref: torch.Tensor) -> bool:
+def _fused_ssim_applies(img: torch.Tensor, ref: torch.Tensor, kernel: str = "ssim_forward") -> bool:
+    """Float32 CPU images of one shape, a reference without gradient, and an extension
+    that has ``kernel``."""
     if not (img.device.type == "cpu" and ref.device.type == "cpu" and img.dim() == 4 and img.shape == ref.shape):
         return False
     if img.dtype != torch.float32 or ref.dtype != torch.float32 or ref.requires_grad:
@@ -61,7 +63,7 @@ def _fused_ssim_applies(img: torch.Tensor, ref: torch.Tensor) -> bool:
         from . import _C
     except ImportError:  # the extension is not built: the torch version still works
         return False
-    return hasattr(_C, "ssim_forward")
+    return hasattr(_C, kernel)
 
 
 class _FusedSSIM(torch.autograd.Function):
@@ -103,11 +105,7 @@ def photometric_maps(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 
 def _fused_photometric_applies(img: torch.Tensor, ref: torch.Tensor) -> bool:
     """Three channels (the maps' channel means are summed in torch's order for three) where
     the fused SSIM applies, with an extension that has the fused loss."""
-    if img.shape[-1] != 3 or not _fused_ssim_applies(img, ref):
-        return False
-    from . import _C
-
-    return hasattr(_C, "photometric_forward")
+    return img.shape[-1] == 3 and _fused_ssim_applies(img, ref, kernel="photometric_forward")
 
 
 def photometric_maps_torch(img: torch.Tensor, ref: torch.Tensor, ssim_lambda: float = 0.2):
