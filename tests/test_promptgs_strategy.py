@@ -479,6 +479,32 @@ def test_carving_finds_a_missing_object_inside_the_box_only():
     assert carve_prompt(box, explained).means.shape[0] == 0
 
 
+def test_carving_capped_keeps_each_chosen_points_own_colour():
+    # Under the cap the chosen points carry the colours they have in the uncapped result:
+    # colours are summed per view for the points kept, after the choice.
+    gen = torch.Generator().manual_seed(1)
+    objs = torch.tensor([[0.2, -0.1, 0.1], [-0.25, 0.2, -0.1], [0.1, 0.3, 0.25]])
+    colours = torch.tensor([[1.0, 0.9, 0.1], [0.1, 0.8, 0.9], [0.9, 0.2, 0.6]])
+    bg = torch.tensor([0.2, 0.3, 0.4])
+    views = []
+    for a in np.linspace(0, 2 * math.pi, 6, endpoint=False):
+        cam = _camera(np.array([3 * math.cos(a), 3 * math.sin(a), 1.0]), [0, 0, 0])
+        gt = bg.expand(cam.height, cam.width, 3).clone()
+        for obj, colour in zip(objs, colours):
+            gt = torch.maximum(gt, _render_points(obj[None], colour[None], cam, torch.zeros(3), scale=0.06))
+        current = torch.ones_like(gt) * bg + 0.01 * torch.rand(gt.shape, generator=gen)
+        views.append((cam, current, gt))
+    box = PromptBox(center=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0))
+    full = carve_prompt(box, views, max_points=10**6, opacity=0.5)
+    capped = carve_prompt(box, views, max_points=full.means.shape[0] // 3, generator=torch.Generator().manual_seed(0),
+                          opacity=0.5)
+    assert 0 < capped.means.shape[0] == full.means.shape[0] // 3
+    index = {tuple(m.tolist()): i for i, m in enumerate(full.means)}
+    rows = [index[tuple(m.tolist())] for m in capped.means]
+    assert torch.equal(capped.colors, full.colors[rows])
+    assert len({round(float(c.sum()), 3) for c in capped.colors}) > 1  # the objects' different colours
+
+
 def test_carving_finds_a_faint_object_above_the_noise_and_nothing_in_noise_alone():
     # A drone of two pixels over terrain of a similar colour differs from it by a few
     # hundredths; a rendered dataset's noise is about a hundredth a pixel and differs view

@@ -566,7 +566,9 @@ def carve_prompt(
 
     seen = torch.zeros(points.shape[0])
     hits = torch.zeros(points.shape[0])
-    color_sum = torch.zeros(points.shape[0], 3)
+    # Per view, the points that hit and the pixel each hit reads its colour at: colours
+    # are summed only for the points kept, at the end, in view order.
+    view_hits: list[tuple[torch.Tensor, torch.Tensor]] = []
     for cam, rendered, gt in views:
         err = (rendered - gt).abs().mean(dim=-1)  # [H, W]
         thr = max(error_threshold, 3.0 * float(err.median()))
@@ -575,22 +577,16 @@ def carve_prompt(
         err, worst = F.max_pool2d(err[None, None], 3, stride=1, padding=1, return_indices=True)
         err, worst = err[0, 0], worst[0, 0]
         h, w = err.shape
-        gt_flat = gt.reshape(-1, 3)
         u, v, z = cam.project(points)
-        px, py = torch.floor(u).long(), torch.floor(v).long()
-        inside = (z > 1e-3) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+        # 0 <= u < w holds exactly when 0 <= floor(u) < w, NaN and infinities outside.
+        inside = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        seen += inside
         idx = torch.where(inside)[0]
-        seen[idx] += 1
-        hit = err[py[idx], px[idx]] > thr
-        hits[idx[hit]] += 1
-        pix = worst[py[idx[hit]], px[idx[hit]]]
-        color = gt_flat[pix]
-        if opacity is not None:
-            # What a Gaussian of this opacity must carry, drawn over the current render,
-            # to give the truth there (an object narrower than a pixel shows in it
-            # mixed with what lies behind).
-            color = (color - (1.0 - opacity) * rendered.reshape(-1, 3)[pix]) / opacity
-        color_sum[idx[hit]] += color.clamp(0, 1)
+        pixel = torch.floor(v[idx]).long() * w + torch.floor(u[idx]).long()
+        hit = err.reshape(-1)[pixel] > thr
+        hit_idx = idx[hit]
+        hits[hit_idx] += 1
+        view_hits.append((hit_idx, worst.reshape(-1)[pixel[hit]]))
     keep = (seen >= min_views) & (hits >= min_vote * seen)
     idx = torch.where(keep)[0]
     if idx.numel() == 0:
@@ -598,7 +594,21 @@ def carve_prompt(
     if idx.numel() > max_points:
         vote = hits[idx] / seen[idx] + 1e-3 * torch.rand(idx.numel(), generator=generator)
         idx = idx[spread_selection(grid[idx], vote, voxel * SPREAD_CELL_VOXELS, max_points)]
-    colors = color_sum[idx] / hits[idx, None].clamp_min(1)
+    slot = torch.full((points.shape[0],), -1, dtype=torch.long)
+    slot[idx] = torch.arange(idx.numel())
+    color_sum = torch.zeros(idx.numel(), 3)
+    for (_, rendered, gt), (hit_idx, pix) in zip(views, view_hits):
+        at = slot[hit_idx]
+        mine = at >= 0
+        pix = pix[mine]
+        color = gt.reshape(-1, 3)[pix]
+        if opacity is not None:
+            # What a Gaussian of this opacity must carry, drawn over the current render,
+            # to give the truth there (an object narrower than a pixel shows in it
+            # mixed with what lies behind).
+            color = (color - (1.0 - opacity) * rendered.reshape(-1, 3)[pix]) / opacity
+        color_sum[at[mine]] += color.clamp(0, 1)
+    colors = color_sum / hits[idx, None].clamp_min(1)
     return CarvedPoints(points[idx], colors.clamp(0, 1), voxel)
 
 
