@@ -21,6 +21,7 @@ setup(
             name="promptgs_engine._C",
             sources=[
                 "csrc/bindings.cpp",
+                "csrc/carve.cpp",
                 "csrc/rasterize_forward.cpp",
                 "csrc/rasterize_backward.cpp",
                 "csrc/kernels.cpp",

@@ -14,6 +14,7 @@ from promptgs_engine.prompts import PromptBox
 from promptgs_engine.render import render
 from promptgs_engine.strategies.promptgs import (
     DRAWN_CARVE_ERROR_THRESHOLD, PromptGSStrategy, append_gaussians, carve_prompt, score_terms, spread_selection,
+    view_votes, view_votes_torch,
 )
 from promptgs_engine.train import make_optimizers
 
@@ -477,6 +478,32 @@ def test_carving_finds_a_missing_object_inside_the_box_only():
     # With a correct model nothing is wrong and nothing is carved.
     explained = [(c, gt, gt) for c, _, gt in views]
     assert carve_prompt(box, explained).means.shape[0] == 0
+
+
+def test_view_votes_in_cpp_are_the_torch_expressions_numbers():
+    pytest.importorskip("promptgs_engine._C")
+    g = torch.Generator().manual_seed(3)
+    h, w, n = 37, 53, 20_000
+    u = torch.rand(n, generator=g) * (w + 20) - 10
+    v = torch.rand(n, generator=g) * (h + 20) - 10
+    z = torch.rand(n, generator=g) * 2 - 0.5
+    # The edges: on the image's borders, at the near bar, NaN and infinities.
+    edges = torch.tensor([0.0, w, w - 1e-4, -1e-7, float("nan"), float("inf"), -float("inf"), 1e30])
+    k = len(edges)
+    u[:k], v[:k] = edges, 5.5
+    u[k : 2 * k], v[k : 2 * k] = 5.5, torch.tensor([0.0, h, h - 1e-4, -1e-7, float("nan"), float("inf"), -1.0, 1e30])
+    u[2 * k : 3 * k], v[2 * k : 3 * k] = 5.5, 5.5
+    z[: 2 * k] = 1.0
+    z[2 * k : 2 * k + 4] = torch.tensor([1e-3, 1.0001e-3, float("nan"), float("inf")])
+    err = torch.rand(h, w, generator=g)
+    worst = torch.randint(0, h * w, (h, w), generator=g)
+    seen, hits = torch.full((n,), 2.0), torch.zeros(n)
+    seen_ref, hits_ref = seen.clone(), hits.clone()
+    index, pixel = view_votes(u, v, z, err, 0.7, worst, seen, hits)
+    index_ref, pixel_ref = view_votes_torch(u, v, z, err, 0.7, worst, seen_ref, hits_ref)
+    assert 0 < index.numel() < n
+    assert torch.equal(index, index_ref) and torch.equal(pixel, pixel_ref)
+    assert torch.equal(seen, seen_ref) and torch.equal(hits, hits_ref)
 
 
 def test_carving_capped_keeps_each_chosen_points_own_colour():

@@ -514,6 +514,43 @@ def spread_selection(points: torch.Tensor, score: torch.Tensor, cell: float, k: 
     return torch.argsort(key)[:k]
 
 
+def view_votes(
+    u: torch.Tensor, v: torch.Tensor, z: torch.Tensor, err: torch.Tensor, threshold: float, worst: torch.Tensor,
+    seen: torch.Tensor, hits: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Resampling's vote in one view: adds 1 to ``seen`` [N] for each point at ``(u, v, z)``
+    [N] the view sees (in front, inside the image) and to ``hits`` for each whose pixel of
+    ``err`` [H, W] is over ``threshold``; returns the hits' indices, ascending, and
+    ``worst`` [H, W] at their pixels. In one C++ pass (csrc/carve.cpp) where the extension
+    has it, else `view_votes_torch`; the same numbers either way."""
+    try:
+        from .. import _C
+    except ImportError:  # the extension is not built: the torch expression still works
+        _C = None
+    if _C is None or not hasattr(_C, "carve_votes"):
+        return view_votes_torch(u, v, z, err, threshold, worst, seen, hits)
+    c = [t.contiguous() for t in (u, v, z, err, worst)]
+    index, pixel = _C.carve_votes(c[0], c[1], c[2], c[3], float(threshold), c[4], seen, hits)
+    return index, pixel
+
+
+def view_votes_torch(
+    u: torch.Tensor, v: torch.Tensor, z: torch.Tensor, err: torch.Tensor, threshold: float, worst: torch.Tensor,
+    seen: torch.Tensor, hits: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """`view_votes` as torch expressions (the reference of the C++ pass)."""
+    h, w = err.shape
+    # 0 <= u < w holds exactly when 0 <= floor(u) < w, NaN and infinities outside.
+    inside = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    seen += inside
+    idx = torch.where(inside)[0]
+    pixel = torch.floor(v[idx]).long() * w + torch.floor(u[idx]).long()
+    hit = err.reshape(-1)[pixel] > threshold
+    hit_idx = idx[hit]
+    hits[hit_idx] += 1
+    return hit_idx, worst.reshape(-1)[pixel[hit]]
+
+
 @dataclass
 class CarvedPoints:
     means: torch.Tensor  # [M, 3]
@@ -576,17 +613,8 @@ def carve_prompt(
         # that worst pixel (the object's, not the background next to it).
         err, worst = F.max_pool2d(err[None, None], 3, stride=1, padding=1, return_indices=True)
         err, worst = err[0, 0], worst[0, 0]
-        h, w = err.shape
         u, v, z = cam.project(points)
-        # 0 <= u < w holds exactly when 0 <= floor(u) < w, NaN and infinities outside.
-        inside = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        seen += inside
-        idx = torch.where(inside)[0]
-        pixel = torch.floor(v[idx]).long() * w + torch.floor(u[idx]).long()
-        hit = err.reshape(-1)[pixel] > thr
-        hit_idx = idx[hit]
-        hits[hit_idx] += 1
-        view_hits.append((hit_idx, worst.reshape(-1)[pixel[hit]]))
+        view_hits.append(view_votes(u, v, z, err, thr, worst, seen, hits))
     keep = (seen >= min_views) & (hits >= min_vote * seen)
     idx = torch.where(keep)[0]
     if idx.numel() == 0:
