@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 # (render/, data/, strategies/, ...) are one name each.
 ENGINE_LAYERS: tuple[frozenset[str], ...] = tuple(map(frozenset, (
     # no engine imports of their own (but the compiled rasterizer)
-    {"__init__", "_C", "errors", "threads", "determinism", "adam", "lifeline"},
+    {"__init__", "_C", "allocator", "errors", "threads", "determinism", "adam", "lifeline"},
     # the pieces: scenes, rendering, the Gaussians, prompt boxes, losses and metrics, events
     {"data", "render", "gaussians", "formats", "prompts", "losses", "metrics", "residuals", "sky", "events",
      "distributed", "synthetic"},
