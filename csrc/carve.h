@@ -1,5 +1,5 @@
 // Resampling's vote in one view, for promptgs_engine/strategies/promptgs.py (`carve_prompt`,
-// whose torch expression `_view_votes_torch` stays the reference).
+// whose torch expression `view_votes_torch` stays the reference).
 //
 // A grid point at continuous pixel (u, v) and depth z is seen by the view when
 // z > 1e-3 and 0 <= u < width, 0 <= v < height, and hits when the dilated error at its
