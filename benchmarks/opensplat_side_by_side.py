@@ -116,7 +116,9 @@ def opensplat_command(binary: Path, help_text: str, dataset: Path, images: str, 
 
 
 def cpu_model() -> dict:
-    """The CPU's model name and vector extensions (Linux /proc/cpuinfo; empty elsewhere)."""
+    """The CPU's model name, family and model numbers, and vector extensions (Linux
+    /proc/cpuinfo; empty elsewhere). Virtual machines often report a bare name ("AMD EPYC")
+    for CPUs of different generations; the family and model numbers tell them apart."""
     try:
         text = Path("/proc/cpuinfo").read_text()
     except OSError:
@@ -124,13 +126,16 @@ def cpu_model() -> dict:
     fields = dict(line.split(":", 1) for line in text.splitlines() if ":" in line)
     fields = {k.strip(): v.strip() for k, v in fields.items()}
     flags = set(fields.get("flags", "").split())
-    return {"model": fields.get("model name", "?"), "avx2": "avx2" in flags, "avx512f": "avx512f" in flags}
+    return {"model": fields.get("model name", "?"), "family": fields.get("cpu family"),
+            "model_number": fields.get("model"), "avx2": "avx2" in flags, "avx512f": "avx512f" in flags}
 
 
 def cpu_line(cpu: dict) -> str:
-    """The CPU model and its widest vector extension, e.g. "AMD EPYC (AVX-512)"."""
+    """The CPU model, its family and model numbers and its widest vector extension, e.g.
+    "AMD EPYC, family 26 model 2 (AVX-512)"."""
     widest = "AVX-512" if cpu.get("avx512f") else "AVX2" if cpu.get("avx2") else "no AVX2"
-    return f"{cpu.get('model', '?')} ({widest})"
+    numbers = f", family {cpu['family']} model {cpu['model_number']}" if cpu.get("family") else ""
+    return f"{cpu.get('model', '?')}{numbers} ({widest})"
 
 
 def our_commit() -> str:
