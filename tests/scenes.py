@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from promptgs_engine.bench.toy_scene import look_at
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
@@ -159,17 +161,6 @@ def colour(points: np.ndarray, face: np.ndarray) -> np.ndarray:
         cell = (i * 73856093) ^ (j * 19349663) ^ (face.astype(np.int64) * 83492791 + int(scale))
         rgb = rgb + weight * _PALETTE[cell % len(_PALETTE)]
     return rgb
-
-
-def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """World-to-camera [4, 4], COLMAP convention (x right, y down, z forward), +Z up."""
-    forward = (target - centre) / np.linalg.norm(target - centre)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    rot = np.stack([right, np.cross(forward, right), forward])
-    m = np.eye(4)
-    m[:3, :3], m[:3, 3] = rot, -rot @ centre
-    return m
 
 
 def ring_poses(n: int, radius: float, height: float) -> list[np.ndarray]:
