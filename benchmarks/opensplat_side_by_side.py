@@ -205,8 +205,8 @@ def plot(results: dict, path: Path) -> None:
     m = results["machine"]
     ax.set_title(f"Tumbler, {results['n_gaussians']:,} SfM Gaussians, no densification, {m['threads']} threads each;\n"
                  f"{results['runs']} alternated runs of {results['steps']} steps, load {m['load_average_start']:.1f}-"
-                 f"{m['load_average_end']:.1f}; OpenSplat {results['opensplat_version']}, PromptGS "
-                 f"{results['promptgs_commit']} ({results['promptgs_kernels']} kernels);\n{cpu_line(m['cpu'])}",
+                 f"{m['load_average_end']:.1f}; OpenSplat {results['opensplat_version']};\n"
+                 f"PromptGS {results['promptgs_commit']} ({results['promptgs_kernels']} kernels); {cpu_line(m['cpu'])}",
                  fontsize=8)
     ax.legend(fontsize=8)
     fig.tight_layout()
