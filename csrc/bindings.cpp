@@ -358,21 +358,21 @@ Tensor photometric_bwd(double ssim_grad, double l1_grad, Tensor partials, Tensor
     return grad_img;
 }
 
-std::vector<Tensor> carve_votes(Tensor u, Tensor v, Tensor z, Tensor err, double threshold, Tensor worst, Tensor seen,
-                                Tensor hits) {
-    const int64_t n = u.size(0);
-    check(u, "u", torch::kFloat32, {n});
-    check(v, "v", torch::kFloat32, {n});
-    check(z, "z", torch::kFloat32, {n});
+std::vector<Tensor> carve_votes(Tensor points, Tensor world_to_camera, Tensor K, Tensor err, double threshold,
+                                Tensor worst, Tensor seen, Tensor hits) {
+    const int64_t n = points.size(0);
+    check(points, "points", torch::kFloat32, {n, 3});
+    check(world_to_camera, "world_to_camera", torch::kFloat32, {4, 4});
+    check(K, "K", torch::kFloat32, {3, 3});
     check(err, "err", torch::kFloat32, {-1, -1});
     check(worst, "worst", torch::kInt64, {err.size(0), err.size(1)});
     check(seen, "seen", torch::kFloat32, {n});
     check(hits, "hits", torch::kFloat32, {n});
+    const promptgs::CarveView view{world_to_camera.data_ptr<float>(), K.data_ptr<float>(), err.size(1), err.size(0)};
     std::vector<int64_t> index, pixel;
     {
         pybind11::gil_scoped_release no_gil;
-        promptgs::carve_votes(n, u.data_ptr<float>(), v.data_ptr<float>(), z.data_ptr<float>(), err.size(1),
-                              err.size(0), err.data_ptr<float>(), static_cast<float>(threshold),
+        promptgs::carve_votes(n, points.data_ptr<float>(), view, err.data_ptr<float>(), static_cast<float>(threshold),
                               worst.data_ptr<int64_t>(), seen.data_ptr<float>(), hits.data_ptr<float>(), index,
                               pixel);
     }
@@ -429,9 +429,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           "dL/dimg from (dL/dSSIM at every element, the factor of sgn(img - ref), partials, img, ref, window): the "
           "SSIM part as ssim_backward gives it for that constant gradient, plus the L1 part.");
     m.def("carve_votes", &carve_votes,
-          "Resampling's vote in one view: (u, v, z [N] float32, dilated error [H,W] float32, threshold, worst pixel "
-          "[H,W] int64, seen [N], hits [N] float32, both added to) -> [indices of the points that hit, their worst "
-          "pixels], in point order.");
+          "Resampling's vote in one view: (points [N,3], world_to_camera [4,4], K [3,3] float32, dilated error [H,W] "
+          "float32, threshold, worst pixel [H,W] int64, seen [N], hits [N] float32, both added to) -> [indices of the "
+          "points that hit, their worst pixels], in point order.");
     m.def("num_threads", &num_threads, "OpenMP threads the rasterizer uses.");
     m.def("simd_variant", [] { return std::string(promptgs::kernels().name); },
           "Instruction set of the kernels picked for this CPU (avx512, avx2, sse2 or native; PROMPTGS_SIMD caps it).");

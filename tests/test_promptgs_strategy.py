@@ -1,5 +1,6 @@
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,8 +14,8 @@ from promptgs_engine.gaussians import init_from_points
 from promptgs_engine.prompts import PromptBox
 from promptgs_engine.render import render
 from promptgs_engine.strategies.promptgs import (
-    DRAWN_CARVE_ERROR_THRESHOLD, PromptGSStrategy, append_gaussians, carve_prompt, score_terms, spread_selection,
-    view_votes, view_votes_torch,
+    DRAWN_CARVE_ERROR_THRESHOLD, PromptGSStrategy, append_gaussians, carve_prompt, project_points_torch, score_terms,
+    spread_selection, view_votes, view_votes_torch,
 )
 from promptgs_engine.train import make_optimizers
 
@@ -480,13 +481,27 @@ def test_carving_finds_a_missing_object_inside_the_box_only():
     assert carve_prompt(box, explained).means.shape[0] == 0
 
 
+def _points_on_pixel_corners(camera, n: int, g: torch.Generator) -> torch.Tensor:
+    """World points (float32) whose exact projection into ``camera`` is a pixel corner: in
+    float the projection lands a few ulps to either side, so the pixel a point votes for
+    depends on how each step of its projection is rounded."""
+    w2c, k = camera.world_to_camera.double(), camera.K.double()
+    a = torch.randint(0, camera.width + 1, (n,), generator=g).double()
+    b = torch.randint(0, camera.height + 1, (n,), generator=g).double()
+    d = torch.rand(n, generator=g, dtype=torch.float64) * 4 + 0.5
+    cam = torch.stack([(a - k[0, 2]) / k[0, 0] * d, (b - k[1, 2]) / k[1, 1] * d, d], -1)
+    return ((cam - w2c[:3, 3]) @ w2c[:3, :3]).float()  # R^T (cam - t), row by row
+
+
 def test_view_votes_in_cpp_are_the_torch_expressions_numbers():
     pytest.importorskip("promptgs_engine._C")
     g = torch.Generator().manual_seed(3)
     h, w, n = 37, 53, 20_000
+    # A view through the origin along +z (u = x / z, v = y / z) for the edges, ...
+    straight = SimpleNamespace(world_to_camera=torch.eye(4), K=torch.eye(3), width=w, height=h)
+    z = torch.rand(n, generator=g) * 2 - 0.5
     u = torch.rand(n, generator=g) * (w + 20) - 10
     v = torch.rand(n, generator=g) * (h + 20) - 10
-    z = torch.rand(n, generator=g) * 2 - 0.5
     # The edges: on the image's borders, at the near bar, NaN and infinities.
     edges = torch.tensor([0.0, w, w - 1e-4, -1e-7, float("nan"), float("inf"), -float("inf"), 1e30])
     k = len(edges)
@@ -495,15 +510,36 @@ def test_view_votes_in_cpp_are_the_torch_expressions_numbers():
     u[2 * k : 3 * k], v[2 * k : 3 * k] = 5.5, 5.5
     z[: 2 * k] = 1.0
     z[2 * k : 2 * k + 4] = torch.tensor([1e-3, 1.0001e-3, float("nan"), float("inf")])
-    err = torch.rand(h, w, generator=g)
-    worst = torch.randint(0, h * w, (h, w), generator=g)
-    seen, hits = torch.full((n,), 2.0), torch.zeros(n)
-    seen_ref, hits_ref = seen.clone(), hits.clone()
-    index, pixel = view_votes(u, v, z, err, 0.7, worst, seen, hits)
-    index_ref, pixel_ref = view_votes_torch(u, v, z, err, 0.7, worst, seen_ref, hits_ref)
-    assert 0 < index.numel() < n
-    assert torch.equal(index, index_ref) and torch.equal(pixel, pixel_ref)
-    assert torch.equal(seen, seen_ref) and torch.equal(hits, hits_ref)
+    straight_points = torch.stack([u * z, v * z, z], -1)
+    straight_points[: 2 * k, :2] = torch.stack([u[: 2 * k], v[: 2 * k]], -1)
+    # ... and a turned, shifted view whose points project onto pixel corners.
+    rot = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0]
+    turned_w2c = torch.eye(4)
+    turned_w2c[:3, :3], turned_w2c[:3, 3] = rot.float(), torch.tensor([0.3, -0.2, 0.7])
+    turned = SimpleNamespace(world_to_camera=turned_w2c, K=torch.tensor([[41.3, 0, 26.1], [0, 39.7, 18.4], [0, 0, 1]]),
+                             width=w, height=h)
+    for camera, points in ((straight, straight_points), (turned, _points_on_pixel_corners(turned, n, g))):
+        err = torch.rand(h, w, generator=g)
+        worst = torch.randint(0, h * w, (h, w), generator=g)
+        seen, hits = torch.full((n,), 2.0), torch.zeros(n)
+        seen_ref, hits_ref = seen.clone(), hits.clone()
+        index, pixel = view_votes(points, camera, err, 0.7, worst, seen, hits)
+        index_ref, pixel_ref = view_votes_torch(points, camera.world_to_camera, camera.K, err, 0.7, worst, seen_ref,
+                                                hits_ref)
+        assert 0 < index.numel() < n
+        assert torch.equal(index, index_ref) and torch.equal(pixel, pixel_ref)
+        assert torch.equal(seen, seen_ref) and torch.equal(hits, hits_ref)
+
+
+def test_vote_projection_is_the_cameras_up_to_rounding():
+    g = torch.Generator().manual_seed(4)
+    rot = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0].float()
+    w2c = torch.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = rot, torch.tensor([0.3, -0.2, 4.0])
+    camera = Camera("c", 64, 48, torch.tensor([[50.0, 0, 31.0], [0, 52.0, 23.5], [0, 0, 1]]), w2c, None)
+    points = torch.randn(1000, 3, generator=g)
+    for ours, theirs in zip(project_points_torch(points, w2c, camera.K), camera.project(points)):
+        assert torch.allclose(ours, theirs, rtol=1e-5, atol=1e-4)
 
 
 def test_carving_capped_keeps_each_chosen_points_own_colour():
@@ -570,8 +606,6 @@ def test_crop_camera_renders_the_crop_of_the_full_image():
 
 def test_resampling_never_runs_right_after_an_opacity_reset():
     """After a reset the render is nearly empty and carving would scatter Gaussians."""
-    from types import SimpleNamespace
-
     from promptgs_engine.focus import PromptFocus
     from promptgs_engine.strategies import DefaultSchedule
 

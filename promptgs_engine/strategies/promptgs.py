@@ -515,30 +515,48 @@ def spread_selection(points: torch.Tensor, score: torch.Tensor, cell: float, k: 
 
 
 def view_votes(
-    u: torch.Tensor, v: torch.Tensor, z: torch.Tensor, err: torch.Tensor, threshold: float, worst: torch.Tensor,
-    seen: torch.Tensor, hits: torch.Tensor,
+    points: torch.Tensor, camera: Any, err: torch.Tensor, threshold: float, worst: torch.Tensor, seen: torch.Tensor,
+    hits: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Resampling's vote in one view: adds 1 to ``seen`` [N] for each point at ``(u, v, z)``
-    [N] the view sees (in front, inside the image) and to ``hits`` for each whose pixel of
-    ``err`` [H, W] is over ``threshold``; returns the hits' indices, ascending, and
+    """Resampling's vote in one view: projects ``points`` [N, 3] into ``camera`` (its
+    ``world_to_camera`` and ``K``; see `project_points_torch`), adds 1 to ``seen`` [N] for
+    each point the view sees (in front, inside the image) and to ``hits`` for each whose
+    pixel of ``err`` [H, W] is over ``threshold``; returns the hits' indices, ascending, and
     ``worst`` [H, W] at their pixels. In one C++ pass (csrc/carve.cpp) where the extension
     has it, else `view_votes_torch`; the same numbers either way."""
     try:
         from .. import _C
     except ImportError:  # the extension is not built: the torch expression still works
         _C = None
+    w2c, k = camera.world_to_camera.float(), camera.K.float()
     if _C is None or not hasattr(_C, "carve_votes"):
-        return view_votes_torch(u, v, z, err, threshold, worst, seen, hits)
-    c = [t.contiguous() for t in (u, v, z, err, worst)]
+        return view_votes_torch(points, w2c, k, err, threshold, worst, seen, hits)
+    c = [t.contiguous() for t in (points, w2c, k, err, worst)]
     index, pixel = _C.carve_votes(c[0], c[1], c[2], c[3], float(threshold), c[4], seen, hits)
     return index, pixel
 
 
+def project_points_torch(
+    points: torch.Tensor, world_to_camera: torch.Tensor, K: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pinhole projection of ``points`` [N, 3] as resampling's vote makes it: ``(u, v, z)``,
+    term by term (each camera coordinate ``((r0 x + r1 y) + r2 z) + t``, then
+    ``x / max(z, 1e-6) * f + c``), so that the C++ pass can round every step the same way.
+    `Camera.project`'s numbers up to rounding; the same bits where torch's matrix product
+    sums the three terms in order without a fused multiply-add (x86 CPUs tested)."""
+    x, y, zw = points.unbind(-1)
+    m = world_to_camera
+    cam = [x * m[r, 0] + y * m[r, 1] + zw * m[r, 2] + m[r, 3] for r in range(3)]
+    zd = cam[2].clamp_min(1e-6)
+    return cam[0] / zd * K[0, 0] + K[0, 2], cam[1] / zd * K[1, 1] + K[1, 2], cam[2]
+
+
 def view_votes_torch(
-    u: torch.Tensor, v: torch.Tensor, z: torch.Tensor, err: torch.Tensor, threshold: float, worst: torch.Tensor,
-    seen: torch.Tensor, hits: torch.Tensor,
+    points: torch.Tensor, world_to_camera: torch.Tensor, K: torch.Tensor, err: torch.Tensor, threshold: float,
+    worst: torch.Tensor, seen: torch.Tensor, hits: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """`view_votes` as torch expressions (the reference of the C++ pass)."""
+    u, v, z = project_points_torch(points, world_to_camera, K)
     h, w = err.shape
     # 0 <= u < w holds exactly when 0 <= floor(u) < w, NaN and infinities outside.
     inside = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
@@ -613,8 +631,7 @@ def carve_prompt(
         # that worst pixel (the object's, not the background next to it).
         err, worst = F.max_pool2d(err[None, None], 3, stride=1, padding=1, return_indices=True)
         err, worst = err[0, 0], worst[0, 0]
-        u, v, z = cam.project(points)
-        view_hits.append(view_votes(u, v, z, err, thr, worst, seen, hits))
+        view_hits.append(view_votes(points, cam, err, thr, worst, seen, hits))
     keep = (seen >= min_views) & (hits >= min_vote * seen)
     idx = torch.where(keep)[0]
     if idx.numel() == 0:
