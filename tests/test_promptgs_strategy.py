@@ -510,8 +510,7 @@ def test_view_votes_in_cpp_are_the_torch_expressions_numbers():
     u[2 * k : 3 * k], v[2 * k : 3 * k] = 5.5, 5.5
     z[: 2 * k] = 1.0
     z[2 * k : 2 * k + 4] = torch.tensor([1e-3, 1.0001e-3, float("nan"), float("inf")])
-    straight_points = torch.stack([u * z, v * z, z], -1)
-    straight_points[: 2 * k, :2] = torch.stack([u[: 2 * k], v[: 2 * k]], -1)
+    straight_points = torch.stack([u * z, v * z, z], -1)  # at z = 1 the edges' u and v exactly
     # ... and a turned, shifted view whose points project onto pixel corners.
     rot = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))[0]
     turned_w2c = torch.eye(4)
