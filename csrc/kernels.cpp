@@ -1,5 +1,5 @@
 // The CPU backend's vectorised kernels (kernel_set.inc: the rasterizer's per-tile passes,
-// the projection and SSIM) compiled once per x86-64 instruction set level, and the choice among them
+// the projection, SSIM and resampling's vote) compiled once per x86-64 instruction set level, and the choice among them
 // for the running CPU.
 //
 // GCC compiles vector-extension code for the target of the enclosing function, so each
@@ -82,7 +82,7 @@ namespace {
             {NS::backward_tile<0, true>, NS::backward_tile<1, true>, NS::backward_tile<2, true>,                \
              NS::backward_tile<3, true>, NS::backward_tile<4, true>, NS::backward_tile<5, true>},               \
             NS::project_forward_range, NS::project_backward_range, NS::ssim_forward_band,                       \
-            NS::ssim_backward_band, NAME                                                                        \
+            NS::ssim_backward_band, NS::carve_pixels, NAME                                                      \
     }
 
 }  // namespace

@@ -1,7 +1,7 @@
 // The vectorised kernels of the CPU backend for one instruction set, picked once at load time
 // from what the CPU supports (AVX-512, AVX2+FMA or the baseline SSE2; see kernels.cpp):
 // the rasterizer's per-tile passes (tile_kernels.inc), the projection of Gaussians
-// (project_kernels.inc) and SSIM (ssim_kernels.inc).
+// (project_kernels.inc), SSIM (ssim_kernels.inc) and resampling's vote (carve_kernels.inc).
 #pragma once
 
 #include "project.h"
@@ -33,6 +33,9 @@ struct Kernels {
     using SsimBackwardBand = void (*)(const SsimShape& s, const float* g, float g_all, const float* p0,
                                       const float* p1, const float* p2, const float* x, const float* y,
                                       const float* w, int o0, int o1, bool with_l1, float l1_coef, float* grad);
+    // Resampling's vote: the pixel of each of n points in one view, or -1 (carve_kernels.inc).
+    using CarvePixels = void (*)(int64_t n, const float* points, const float* world_to_camera, const float* K,
+                                 int64_t width, int64_t height, int32_t* pixel);
     // Entry c of forward/backward is specialised for c channels (c = 1..kMaxChannelsFixed);
     // entry 0 takes any channel count. Use kernel_for() to pick.
     Forward forward[kMaxChannelsFixed + 1];
@@ -42,6 +45,7 @@ struct Kernels {
     ProjectBackward project_backward;
     SsimForwardBand ssim_forward_band;
     SsimBackwardBand ssim_backward_band;
+    CarvePixels carve_pixels;
     const char* name;
 };
 const Kernels& kernels();

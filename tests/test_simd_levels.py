@@ -1,8 +1,9 @@
 """The CPU backend's kernels (rasterizer, projection, SSIM) are compiled for several x86-64
 instruction set levels and the best one the CPU supports is picked at load time, so a
 machine with AVX-512 would never run the AVX2 or SSE2 kernels that most other machines use.
-PROMPTGS_SIMD caps the level: these tests run the parity checks of test_render_cpu.py and
-the fused SSIM's of test_losses_metrics.py once per lower level, in a subprocess."""
+PROMPTGS_SIMD caps the level: these tests run the parity checks of test_render_cpu.py, the
+fused SSIM's of test_losses_metrics.py and resampling's vote against its torch expression
+(test_promptgs_strategy.py) once per lower level, in a subprocess."""
 
 from __future__ import annotations
 
@@ -14,9 +15,10 @@ from pathlib import Path
 import pytest
 
 TESTS = Path(__file__).resolve().parent
-PARITY_FILES = ("test_render_cpu.py", "test_losses_metrics.py")
+PARITY_FILES = ("test_render_cpu.py", "test_losses_metrics.py", "test_promptgs_strategy.py")
 PARITY = ("features or sh_two_cameras or sh_rest_apart or dense_opaque or thin_slanted or absgrad or "
-          "projection_matches or sh_matches or culling or large_gaussians or fused_cpu_ssim or fused_photometric")
+          "projection_matches or sh_matches or culling or large_gaussians or fused_cpu_ssim or fused_photometric or "
+          "view_votes_in_cpp")
 
 
 def variant_under(level: str) -> str:
