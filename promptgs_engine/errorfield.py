@@ -182,17 +182,19 @@ class ErrorField:
         self.hits[idx[found]] += new_h[found]
         fresh = ~found
         if bool(fresh.any()):
-            # Both key lists are sorted: each key's place in the merged list is its index
-            # plus the number of keys of the other list below it.
+            # Both key lists are sorted: a new key's place in the merged list is its index
+            # plus the number of stored keys below it, and the stored keys fill the other
+            # places in their order.
             add_keys = new_keys[fresh]
             m, a = len(self), add_keys.numel()
-            old_at = torch.arange(m) + torch.searchsorted(add_keys, self.keys)
             add_at = torch.arange(a) + torch.searchsorted(self.keys, add_keys)
+            stored_at = torch.ones(m + a, dtype=torch.bool)
+            stored_at[add_at] = False
             keys = torch.empty(m + a, dtype=torch.long)
             loss_sum = torch.empty(m + a, dtype=torch.float64)
             hits = torch.empty(m + a, dtype=torch.float64)
             for out, old, add in ((keys, self.keys, add_keys), (loss_sum, self.loss_sum, new_s[fresh]), (hits, self.hits, new_h[fresh])):
-                out[old_at] = old
+                out.masked_scatter_(stored_at, old)
                 out[add_at] = add
             self.keys, self.loss_sum, self.hits = keys, loss_sum, hits
         return int(vals.numel())
