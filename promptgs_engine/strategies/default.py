@@ -23,6 +23,10 @@ from ..threads import one_thread
 STRATEGY_NAMES = ("3dgs", "absgs", "promptgs")
 # Flag in the info of a batched step whose statistics are in the state already (batch.py).
 STATISTICS_MERGED = "statistics_merged"
+# Entries of a step's info that its statistics make once and share (`step_visible`,
+# `step_grad2d_norms`).
+STEP_VISIBLE = "step_visible"
+STEP_GRAD2D_NORMS = "step_grad2d_norms"
 
 # Strategy state of the far background shell (sky.py), set by the trainer: BACKGROUND is
 # 1.0 for the shell's Gaussians (carried through growth and pruning like every per-Gaussian
@@ -243,6 +247,26 @@ def pixel_gradient_scale(info: dict[str, Any], grads: torch.Tensor) -> torch.Ten
     return torch.tensor([info["width"] / 2.0 * c, info["height"] / 2.0 * c], dtype=grads.dtype, device=grads.device)
 
 
+def step_visible(info: dict[str, Any]) -> torch.Tensor:
+    """[C, N] bool: the Gaussians each view of the step rendered (both radii > 0). Made once
+    a step and kept in ``info``, which every statistic of the step reads it from."""
+    visible = info.get(STEP_VISIBLE)
+    if visible is None:
+        visible = info[STEP_VISIBLE] = (info["radii"] > 0).all(dim=-1)
+    return visible
+
+
+def step_grad2d_norms(info: dict[str, Any], key: str, absgrad: bool) -> torch.Tensor:
+    """[C, N]: the norms of the step's view-space gradients of ``info[key]`` (``absgrad``: its
+    absolute ones) times `pixel_gradient_scale`, made once a step and kept in ``info``."""
+    name = f"{STEP_GRAD2D_NORMS}:{key}:{int(absgrad)}"
+    norms = info.get(name)
+    if norms is None:
+        grads = info[key].absgrad if absgrad else info[key].grad  # [C, N, 2]
+        norms = info[name] = (grads * pixel_gradient_scale(info, grads)).norm(dim=-1)
+    return norms
+
+
 def accumulate_grad2d(
     state: dict[str, Any], info: dict[str, Any], key: str, absgrad: bool, n: int, only: torch.Tensor | None = None
 ) -> None:
@@ -252,15 +276,13 @@ def accumulate_grad2d(
     equal), but masked adds over all Gaussians in place of gathers, nonzero and index_add_:
     half the torch calls, none of them sized by a count of visible Gaussians. ``only`` (bool
     [N]): the Gaussians that take this step's statistics; the others keep theirs."""
-    means2d = info[key]
-    grads = means2d.absgrad if absgrad else means2d.grad  # [C, N, 2]
-    norms = (grads * pixel_gradient_scale(info, grads)).norm(dim=-1)  # [C, N]
-    visible = (info["radii"] > 0).all(dim=-1)  # [C, N]
+    norms = step_grad2d_norms(info, key, absgrad)  # [C, N]
+    visible = step_visible(info)  # [C, N]
     if only is not None:
         visible = visible & only
     for key_ in ("grad2d", "count"):
         if state[key_] is None:
-            state[key_] = torch.zeros(n, device=grads.device)
+            state[key_] = torch.zeros(n, device=norms.device)
     for cam in range(visible.shape[0]):
         state["grad2d"].add_(torch.where(visible[cam], norms[cam], 0.0))
         state["count"].add_(visible[cam])

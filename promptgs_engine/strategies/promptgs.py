@@ -81,7 +81,7 @@ from gsplat.strategy.ops import _update_param_with_optimizer, remove
 from ..gaussians import rgb_to_sh
 from ..prompts import PromptBox, boxes_contain
 from ..threads import one_thread
-from .default import STATISTICS_MERGED, ResettingDefaultStrategy, pixel_gradient_scale
+from .default import STATISTICS_MERGED, ResettingDefaultStrategy, step_grad2d_norms, step_visible
 
 # Above this fraction of the Gaussians inside the prompts, growth there uses the normal
 # 3DGS threshold (see growth_candidates).
@@ -140,7 +140,7 @@ def score_terms(
     to [0, 4]; ``F = log1p``. Needs the step's ``means2d`` gradient."""
     radii = info["radii"]  # [C, N, 2]
     n = radii.shape[1]
-    visible = (radii > 0).all(dim=-1)  # [C, N]
+    visible = step_visible(info)  # [C, N]
     # Pairs as flat indices camera · N + Gaussian (the order of ``torch.where(visible)``):
     # one-index gathers are several times faster than two-index ones on the CPU.
     pairs = visible.reshape(-1).nonzero().squeeze(1)
@@ -148,8 +148,7 @@ def score_terms(
     if pairs.numel() == 0:
         return cam_ids, gs_ids, torch.zeros(0, device=radii.device)
     w, h = info["width"], info["height"]
-    grad = info["means2d"].absgrad if absgrad else info["means2d"].grad
-    g = ((grad.reshape(-1, 2)[pairs] * pixel_gradient_scale(info, grad)).norm(dim=-1) / grow_grad2d).clamp(0, 4)
+    g = (step_grad2d_norms(info, "means2d", absgrad).reshape(-1)[pairs] / grow_grad2d).clamp(0, 4)
     depth = info["depths"].reshape(-1)[pairs]
     d = 1.0 / (1.0 + depth.clamp_min(0) / scene_scale)
     o = torch.sigmoid(params["opacities"][gs_ids])
@@ -208,16 +207,16 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             return torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
         return boxes_contain(self.prompts, means.detach()).any(dim=0)
 
-    def inside_prompts_seen(self, means: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
-        """`inside_prompts` for the Gaussians a step rendered (``radii`` [C, N, 2] > 0 in
-        some view); the others are False on the CPU, where only the rendered ones are
-        tested (a crop sees about a quarter of them). On a GPU every Gaussian is tested:
-        a gather by a count of visible ones would make the host wait."""
+    def inside_prompts_seen(self, means: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+        """`inside_prompts` for the Gaussians a step rendered (``visible`` [C, N] in some
+        view, `step_visible`); the others are False on the CPU, where only the rendered
+        ones are tested (a crop sees about a quarter of them). On a GPU every Gaussian is
+        tested: a gather by a count of visible ones would make the host wait."""
         if means.device.type != "cpu":
-            return self.inside_prompts(means) & (radii > 0).all(dim=-1).any(dim=0)
+            return self.inside_prompts(means) & visible.any(dim=0)
         inside = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
         if self.prompts:
-            ids = (radii > 0).all(dim=-1).any(dim=0).nonzero().squeeze(1)
+            ids = visible.any(dim=0).nonzero().squeeze(1)
             inside[ids] = boxes_contain(self.prompts, means.detach()[ids]).any(dim=0)
         return inside
 
@@ -266,7 +265,7 @@ class PromptGSStrategy(ResettingDefaultStrategy):
             super()._update_state(params, state, info, packed=packed)
         else:  # packed radii are per visible pair, not [C, N, 2]: test every Gaussian then
             means = params["means"]
-            inside = self.inside_prompts(means) if packed else self.inside_prompts_seen(means, info["radii"])
+            inside = self.inside_prompts(means) if packed else self.inside_prompts_seen(means, step_visible(info))
             self.add_statistics(params, state, info, packed=packed, only=inside)
         self._ensure_state(params, state)
         if "view_loss" not in info:
