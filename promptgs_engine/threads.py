@@ -11,7 +11,8 @@ then run inline, without waking anyone) and puts the count back afterwards, also
 error. The block's results are the same bits: the operations it is used around are
 element-wise, gathers and scatters whose sums do not depend on how the work is split
 (`tests/test_threads.py`, and whole runs compared to the last bit). Used around the
-strategies' statistics and `PromptFocus.observe`.
+strategies' statistics, `PromptFocus.observe` and the trainer's finiteness check (a sum
+per parameter, whose finiteness is the same however it is split).
 """
 
 from __future__ import annotations

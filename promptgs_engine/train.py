@@ -49,6 +49,7 @@ from .sky import sky_points
 from .strategies import DefaultSchedule, make_default_strategy
 from .strategies.default import BACKGROUND, BACKGROUND_RADIUS, STATISTICS_MERGED
 from .strategies.promptgs import LAST_ROUND_JUDGED_AT, PromptGSStrategy
+from .threads import one_thread
 from .views import TrainView
 
 log = logging.getLogger("promptgs.train")
@@ -474,7 +475,8 @@ class Trainer:
         return summary
 
     def check_finite(self) -> None:
-        key = first_non_finite(self.params)
+        with one_thread():  # small models: faster than waking a thread for each sum (threads.py)
+            key = first_non_finite(self.params)
         if key is not None:
             raise TrainingError(
                 f"step {self.step}: NaN/inf in parameter '{key}'; the last good checkpoint is kept in {self.out / CHECKPOINT}"
