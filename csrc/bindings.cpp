@@ -128,7 +128,8 @@ std::vector<Tensor> backward(int64_t n, Tensor background, int64_t width, int64_
     check(out_alphas, "out_alphas", torch::kFloat32, {height, width, 1});
     check(last_ids, "last_ids", torch::kInt32, {height, width});
     check(grad_colors, "grad_colors", torch::kFloat32, {height, width, D});
-    check(grad_alphas, "grad_alphas", torch::kFloat32, {height, width, 1});
+    // empty: no gradient reached the alphas (zeros)
+    if (grad_alphas.numel() > 0) check(grad_alphas, "grad_alphas", torch::kFloat32, {height, width, 1});
     TORCH_CHECK(tile_offsets.data_ptr<int32_t>()[tile_offsets.numel() - 1] == tile_ids.numel(),
                 "tile_offsets do not match tile_ids");
     bins.m = M;
@@ -154,7 +155,8 @@ std::vector<Tensor> backward(int64_t n, Tensor background, int64_t width, int64_
         pybind11::gil_scoped_release no_gil;
         promptgs::rasterize_backward(in, bins, out_alphas.data_ptr<float>(), last_ids.data_ptr<int32_t>(),
                                      reinterpret_cast<const uint32_t*>(tile_rows.data_ptr<int32_t>()),
-                                     grad_colors.data_ptr<float>(), grad_alphas.data_ptr<float>(),
+                                     grad_colors.data_ptr<float>(),
+                                     grad_alphas.numel() > 0 ? grad_alphas.data_ptr<float>() : nullptr,
                                      g_means2d.data_ptr<float>(), g_conics.data_ptr<float>(),
                                      g_colors.data_ptr<float>(), g_opac.data_ptr<float>(),
                                      absgrad ? g_abs.data_ptr<float>() : nullptr);
@@ -403,8 +405,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
           "splats Mx8, sorted_colors MxD].");
     m.def("rasterize_backward", &backward,
           "Gradients of one image: (n_gaussians, background, width, height, then the forward's tile_offsets, "
-          "tile_ids, tile_order, tile_rows, splats, sorted_colors, alphas, last_ids, then dL/dcolors, dL/dalphas, "
-          "absgrad) -> [means2d Nx2, conics Nx3, colors NxD, opacities N, absgrad Nx2 or empty].");
+          "tile_ids, tile_order, tile_rows, splats, sorted_colors, alphas, last_ids, then dL/dcolors, dL/dalphas "
+          "(empty for zeros), absgrad) -> [means2d Nx2, conics Nx3, colors NxD, opacities N, absgrad Nx2 or empty].");
     m.def("project_forward", &project_fwd,
           "EWA projection (+ SH colours) for C cameras: (means, quats, scales, opacities, sh or empty, sh_degree, "
           "viewmats Cx4x4, Ks Cx3x3, width, height, near, far, eps2d, sh_rest or empty) -> [means2d CxNx2, "

@@ -95,7 +95,7 @@ struct TileArgs {
     const int32_t* last_ids = nullptr;   // [H, W] forward last contributors
     const uint32_t* rows = nullptr;      // [n_isects] forward out_rows
     const float* grad_colors = nullptr;  // [H, W, D]
-    const float* grad_alphas = nullptr;  // [H, W]
+    const float* grad_alphas = nullptr;  // [H, W], or null for zeros
 };
 
 // Per-Gaussian record in the backward gradient buffers: mean2d (2), conic (3),

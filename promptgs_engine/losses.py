@@ -134,12 +134,15 @@ class _FusedPhotometric(torch.autograd.Function):
         ctx.save_for_backward(img_c, ref_c, partials, window)
         ctx.lam = lam
         ctx.mark_non_differentiable(l1_map, dssim_map)
+        ctx.set_materialize_grads(False)  # the maps' gradients are never used: no image-sized zeros
         return loss, l1_map, dssim_map
 
     @staticmethod
-    def backward(ctx, grad: torch.Tensor, _g_l1: torch.Tensor, _g_dssim: torch.Tensor):  # type: ignore[override]
+    def backward(ctx, grad: torch.Tensor | None, _g_l1: None, _g_dssim: None):  # type: ignore[override]
         from . import _C
 
+        if grad is None:
+            return None, None, None
         img, ref, partials, window = ctx.saved_tensors
         lam = ctx.lam
         channels = img.shape[-1]

@@ -355,6 +355,31 @@ def test_backward_is_bit_reproducible():
             assert torch.equal(a, b)
 
 
+@pytest.mark.parametrize("used", ["colors", "alphas"])
+def test_an_output_no_loss_reaches_counts_as_zero_gradient(used):
+    """The rasterizer's backward gets no image of zeros for an output the loss does not use
+    (the alphas, in training); its gradients are those of an explicit zero gradient, bit for bit."""
+    m, q, s, o = make_scene(300, seed=4, dtype=torch.float32)
+    colors = torch.rand(300, 3, generator=torch.Generator().manual_seed(2))
+    viewmats, Ks = cameras(1, dtype=torch.float32)
+    w = torch.Generator().manual_seed(3)
+    w_out, w_alpha = torch.randn(1, H, W, 3, generator=w), torch.randn(1, H, W, 1, generator=w)
+
+    def grads(explicit_zero: bool):
+        params = [t.clone().requires_grad_() for t in (m, q, s, o, colors)]
+        out, alpha, _ = render(*params, viewmats, Ks, W, H, backend="cpu")
+        loss = (out * w_out).sum() if used == "colors" else (alpha * w_alpha).sum()
+        if explicit_zero:
+            loss = loss + ((alpha * 0.0).sum() if used == "colors" else (out * 0.0).sum())
+        loss.backward()
+        return [p.grad for p in params]
+
+    implicit, explicit = grads(False), grads(True)
+    assert any(g.abs().max() > 0 for g in implicit)
+    for a, b in zip(implicit, explicit):
+        assert torch.equal(a, b)
+
+
 def test_rasterizer_finite_differences_float32():
     """Central differences of the C++ forward against its backward, on an 8×8 image where no
     pixel crosses the 1/255 cut-off or the termination threshold (so the loss is smooth)."""

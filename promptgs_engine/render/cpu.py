@@ -72,19 +72,25 @@ class RasterizeCPU(torch.autograd.Function):
         ctx.has_bg = backgrounds is not None
         ctx.per_camera_opacity = per_camera_opacity
         ctx.save_for_backward(means2d)
+        # An output that no loss reaches (most often the alphas) gets None, not a zero image.
+        ctx.set_materialize_grads(False)
         return _stack(out_colors), _stack(out_alphas)
 
     @staticmethod
-    def backward(ctx: Any, grad_colors: Tensor, grad_alphas: Tensor):  # type: ignore[override]
+    def backward(ctx: Any, grad_colors: Tensor | None, grad_alphas: Tensor | None):  # type: ignore[override]
         (means2d,) = ctx.saved_tensors
         _C = _ext()
+        if grad_colors is None:
+            d = ctx.saved_per_camera[0][2][-1].shape[1]  # sorted_colors [M, D]
+            grad_colors = means2d.new_zeros(len(ctx.saved_per_camera), ctx.height, ctx.width, d)
+        no_alpha_grad = torch.empty(0)  # the extension reads an empty tensor as zeros
         g_m, g_cn, g_col, g_op, g_abs, g_bg = [], [], [], [], [], []
         n = means2d.shape[-2]
         for c, (bg, alpha, bins) in enumerate(ctx.saved_per_camera):
             last_ids, *tiles = bins  # tile_offsets, tile_ids, tile_order, tile_rows, splats, sorted_colors
             gm, gcn, gcol, gop, gab = _C.rasterize_backward(
                 n, bg, ctx.width, ctx.height, *tiles, alpha, last_ids,
-                _f32(grad_colors[c]), _f32(grad_alphas[c]), ctx.absgrad,
+                _f32(grad_colors[c]), no_alpha_grad if grad_alphas is None else _f32(grad_alphas[c]), ctx.absgrad,
             )
             g_m.append(gm)
             g_cn.append(gcn)
