@@ -6,7 +6,8 @@ times each part with wall clocks around it, plus the C++ stages the extension re
 (projection, depth sort, binning, gathering, forward blend, backward blend, gradient
 reduction; ``_C.stage_times()``, absent from builds older than it). Densification and
 opacity resets are switched off so that every measured step does the same work; the
-strategy's per-step statistics still run.
+strategy's per-step statistics still run. The steps skip the training PSNR, as the run
+loop's steps between its progress reports do.
 
     python benchmarks/train_profile.py /work/shared/data/tumbler --ply run/point_cloud.ply
     python benchmarks/train_profile.py /work/shared/data/tumbler --images images_4   # SfM points
@@ -130,7 +131,7 @@ def profile(trainer, start_step: int, steps: int, warmup: int, cpu_clock: bool =
             if has_stages:
                 ext.stage_times(True)
             t0 = clock.now()
-            trainer.train_step()
+            trainer.train_step(psnr=False)  # as the run loop's steps between its progress reports
             total = clock.now() - t0
             trainer.step += 1
             cpp = ext.stage_times(True, cpu_clock) if has_stages else None

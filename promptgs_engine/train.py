@@ -97,7 +97,7 @@ def first_non_finite(params: torch.nn.ParameterDict | dict[str, torch.Tensor]) -
 @dataclass
 class StepResult:
     loss: float
-    psnr: float
+    psnr: float | None  # None when the step was asked not to measure it
 
 
 class Trainer:
@@ -295,7 +295,10 @@ class Trainer:
         is (1 − λ)·L1 + λ·D-SSIM from per-pixel maps, which PromptGS reuses for its scores."""
         return photometric_maps(img, gt, self.cfg.ssim_lambda)
 
-    def train_step(self) -> StepResult:
+    def train_step(self, psnr: bool = True) -> StepResult:
+        """One training step. ``psnr``: also measure the render's PSNR against its image, a
+        pass over both images that changes nothing else (the run loop asks for it on the
+        steps it reports; a step of several views or ranks always measures it)."""
         if self.batched:
             return self._train_batch()
         step = self.step
@@ -312,7 +315,10 @@ class Trainer:
         loss, l1_map, dssim_map = self.image_loss(img, gt)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
         loss.backward()
-        loss_value, mse_value = loss_and_mse(loss, img, gt)
+        if psnr:
+            loss_value, mse_value = loss_and_mse(loss, img, gt)
+        else:
+            loss_value, mse_value = float(loss.detach()), None
         if not math.isfinite(loss_value):
             raise TrainingError(f"step {step}: the loss is {loss_value} (camera {cameras[0].name})")
         if self.focus is not None:
@@ -321,7 +327,7 @@ class Trainer:
                 out[..., 3].detach() if with_depth else None, alpha[..., 0].detach(), info,
             )
         self.update(step, info)
-        return StepResult(loss=loss_value, psnr=mse_to_psnr(mse_value))
+        return StepResult(loss=loss_value, psnr=None if mse_value is None else mse_to_psnr(mse_value))
 
     # -- a step of several views, or of several ranks (batch.py) ---------------------
 
@@ -570,13 +576,14 @@ class Trainer:
         bar = tqdm(total=self.total_steps, initial=self.step, desc=f"train {cfg.strategy}", disable=self.quiet, unit="step")
         loss_ema: float | None = None
         while self.step < self.total_steps:
+            report = (self.step + 1) % cfg.progress_every == 0 or self.step + 1 == self.total_steps
             t0 = time.perf_counter()
-            result = self.train_step()
+            result = self.train_step(psnr=report)
             self.train_seconds += time.perf_counter() - t0
             self.step += 1
             loss_ema = result.loss if loss_ema is None else 0.9 * loss_ema + 0.1 * result.loss
             bar.update(1)
-            if self.step % cfg.progress_every == 0 or self.step == self.total_steps:
+            if report:
                 bar.set_postfix(loss=f"{loss_ema:.4f}", psnr=f"{result.psnr:.2f}", n=self.n_gaussians)
                 per_step = self.train_seconds / max(self.step, 1)
                 self.events.emit(

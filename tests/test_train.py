@@ -90,10 +90,10 @@ def test_an_interrupted_run_resumes_to_the_same_result(toy, tmp_path, monkeypatc
     b = TrainConfig(dataset=str(toy), out=str(tmp_path / "b"), iterations=40, checkpoint_every=20, seed=3, backend="cpu")
     real_step = Trainer.train_step
 
-    def interrupted(self):
+    def interrupted(self, **kwargs):
         if self.step == 25:
             raise KeyboardInterrupt
-        return real_step(self)
+        return real_step(self, **kwargs)
 
     monkeypatch.setattr(Trainer, "train_step", interrupted)
     with pytest.raises(KeyboardInterrupt):
@@ -188,8 +188,8 @@ def test_nan_is_reported_with_step_and_parameter_and_keeps_the_checkpoint(toy, t
     trainer.out.mkdir()
     real_step = trainer.train_step
 
-    def poisoned_step():
-        result = real_step()
+    def poisoned_step(**kwargs):
+        result = real_step(**kwargs)
         if trainer.step == 14:
             with torch.no_grad():
                 trainer.params["opacities"][0] = float("nan")
@@ -216,6 +216,7 @@ def test_events_stream_is_json_lines_from_start_to_done(toy, tmp_path):
     kinds = [e["event"] for e in events]
     assert kinds[0] == "start" and kinds[-1] == "done"
     assert kinds.count("snapshot") == 2 and "progress" in kinds
+    assert all(math.isfinite(e["psnr"]) for e in events if e["event"] == "progress")  # measured on reported steps
     snap = np.load(next(e["path"] for e in events if e["event"] == "snapshot"))
     n = snap["means"].shape[0]
     for key, shape in {"opacity": (n,), "scale": (n, 3), "rotation": (n, 4), "color": (n, 3), "score": (n,), "error": (n,)}.items():
@@ -223,6 +224,24 @@ def test_events_stream_is_json_lines_from_start_to_done(toy, tmp_path):
     assert np.allclose(np.linalg.norm(snap["rotation"], axis=1), 1.0, atol=1e-5)
     done = events[-1]
     assert Path(done["ply"]).is_file() and math.isfinite(done["metrics"]["psnr"])
+
+
+def test_a_step_that_skips_its_psnr_trains_the_same_to_the_bit(toy, tmp_path):
+    def three_steps(psnr: bool):
+        cfg = TrainConfig(dataset=str(toy), out=str(tmp_path / f"run-{psnr}"), iterations=10, checkpoint_every=0)
+        trainer = Trainer(cfg, quiet=True)
+        results = []
+        for _ in range(3):
+            results.append(trainer.train_step(psnr=psnr))
+            trainer.step += 1
+        return results, {k: v.detach().clone() for k, v in trainer.params.items()}
+
+    measured, params = three_steps(True)
+    skipped, params_skipped = three_steps(False)
+    assert all(math.isfinite(r.psnr) for r in measured) and all(r.psnr is None for r in skipped)
+    assert [r.loss for r in measured] == [r.loss for r in skipped]
+    for key in params:
+        assert torch.equal(params[key], params_skipped[key]), key
 
 
 def test_events_report_errors_as_an_event_and_exit_code(tmp_path):
