@@ -74,7 +74,7 @@ def ours_worker(dataset: str, images: str, steps: int) -> int:
         print(f"simd {_C.simd_variant()}", flush=True)
         while trainer.step < steps:
             # the PSNR on the steps the CLI's run loop reports, as it measures it
-            result = trainer.train_step(psnr=(trainer.step + 1) % cfg.progress_every == 0)
+            result = trainer.train_step(psnr=trainer.reports_progress(trainer.step + 1))
             trainer.step += 1
             print(f"Step {trainer.step}: {result.loss:.5f}", flush=True)
     return 0

@@ -295,6 +295,11 @@ class Trainer:
         is (1 − λ)·L1 + λ·D-SSIM from per-pixel maps, which PromptGS reuses for its scores."""
         return photometric_maps(img, gt, self.cfg.ssim_lambda)
 
+    def reports_progress(self, step: int) -> bool:
+        """Whether the run loop reports its progress (loss, PSNR) after step number ``step``
+        (counted from 1)."""
+        return step % self.cfg.progress_every == 0 or step == self.total_steps
+
     def train_step(self, psnr: bool = True) -> StepResult:
         """One training step. ``psnr``: also measure the render's PSNR against its image, a
         pass over both images that changes nothing else (the run loop asks for it on the
@@ -576,7 +581,7 @@ class Trainer:
         bar = tqdm(total=self.total_steps, initial=self.step, desc=f"train {cfg.strategy}", disable=self.quiet, unit="step")
         loss_ema: float | None = None
         while self.step < self.total_steps:
-            report = (self.step + 1) % cfg.progress_every == 0 or self.step + 1 == self.total_steps
+            report = self.reports_progress(self.step + 1)
             t0 = time.perf_counter()
             result = self.train_step(psnr=report)
             self.train_seconds += time.perf_counter() - t0

@@ -69,6 +69,7 @@ class RasterizeCPU(torch.autograd.Function):
             saved.append((bg, alpha, bins))
         ctx.saved_per_camera = saved
         ctx.width, ctx.height, ctx.absgrad = width, height, absgrad
+        ctx.channels = colors.shape[-1]
         ctx.has_bg = backgrounds is not None
         ctx.per_camera_opacity = per_camera_opacity
         ctx.save_for_backward(means2d)
@@ -81,8 +82,7 @@ class RasterizeCPU(torch.autograd.Function):
         (means2d,) = ctx.saved_tensors
         _C = _ext()
         if grad_colors is None:
-            d = ctx.saved_per_camera[0][2][-1].shape[1]  # sorted_colors [M, D]
-            grad_colors = means2d.new_zeros(len(ctx.saved_per_camera), ctx.height, ctx.width, d)
+            grad_colors = means2d.new_zeros(len(ctx.saved_per_camera), ctx.height, ctx.width, ctx.channels)
         no_alpha_grad = torch.empty(0)  # the extension reads an empty tensor as zeros
         g_m, g_cn, g_col, g_op, g_abs, g_bg = [], [], [], [], [], []
         n = means2d.shape[-2]
